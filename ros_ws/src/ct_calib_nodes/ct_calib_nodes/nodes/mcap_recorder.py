@@ -1,0 +1,103 @@
+"""Record topics to an MCAP file (rosbag2 layout) from raw, exact CDR bytes.
+
+There is no rosbag2 wheel, so this node plays the part of ``ros2 bag record``
+for the cell. Like rosbag2 it subscribes once a topic has a publisher,
+adapting reliability and durability to what the publishers offer (so it
+records best-effort drivers as well as latched results), and stores the raw
+serialized bytes it receives with the receive time as log time.
+
+Parameters
+----------
+output : str
+    ``.mcap`` file or rosbag2 directory to create [path].
+topics : string array
+    Topics to record; empty = every topic that appears (except /rosout and
+    /parameter_events).
+discovery_period_s : double
+    How often to look for new topics [s].
+compression : str
+    MCAP chunk compression: zstd, lz4 or none.
+"""
+
+from __future__ import annotations
+
+import rclpy
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from ct_calib_nodes.io.mcap_io import Rosbag2McapWriter, import_message_type
+from ct_calib_nodes.nodes.runner import run_node
+
+IGNORED = {"/rosout", "/parameter_events"}
+
+
+def _qos_dict(q: QoSProfile) -> dict:
+    return dict(history="keep_last", depth=q.depth,
+                reliability="reliable" if q.reliability == ReliabilityPolicy.RELIABLE else "best_effort",
+                durability="transient_local" if q.durability == DurabilityPolicy.TRANSIENT_LOCAL else "volatile",
+                deadline=dict(sec=0, nsec=0), lifespan=dict(sec=0, nsec=0), liveliness="automatic",
+                liveliness_lease_duration=dict(sec=0, nsec=0), avoid_ros_namespace_conventions=False)
+
+
+class McapRecorder(Node):
+    def __init__(self):
+        super().__init__("mcap_recorder")
+        self.declare_parameter("output", "bags/recording.mcap",
+                               descriptor=_desc("MCAP file (.mcap) or rosbag2 directory to create [path]"))
+        self.declare_parameter("topics", [""], descriptor=_desc("topics to record; empty = all"))
+        self.declare_parameter("discovery_period_s", 0.2, descriptor=_desc("topic discovery period [s]"))
+        self.declare_parameter("compression", "zstd", descriptor=_desc("MCAP chunk compression: zstd, lz4, none"))
+        output = self.get_parameter("output").value
+        self.wanted = {t for t in self.get_parameter("topics").value if t}
+        comp = self.get_parameter("compression").value
+        self.writer = Rosbag2McapWriter(output, compression="" if comp == "none" else comp)
+        self.subs = {}
+        self.timer = self.create_timer(float(self.get_parameter("discovery_period_s").value), self._discover)
+        self._discover()
+        self.get_logger().info(f"recording {sorted(self.wanted) if self.wanted else 'all topics'} to {output}")
+
+    def _discover(self):
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self.subs or topic in IGNORED or (self.wanted and topic not in self.wanted):
+                continue
+            pubs = self.get_publishers_info_by_topic(topic)
+            if not pubs or len(types) != 1:
+                continue
+            reliable = all(p.qos_profile.reliability == ReliabilityPolicy.RELIABLE for p in pubs)
+            latched = all(p.qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL for p in pubs)
+            qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1000,
+                             reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+            type_name = types[0]
+            try:
+                msg_type = import_message_type(type_name)
+            except ValueError as exc:
+                self.get_logger().warning(f"cannot record {topic}: type {type_name} not installed ({exc})")
+                self.subs[topic] = None
+                continue
+            self.writer.add_topic(topic, type_name, [_qos_dict(qos)])
+            self.subs[topic] = self.create_subscription(
+                msg_type, topic, lambda data, t=topic: self._on_raw(t, data), qos, raw=True)
+            self.get_logger().info(f"recording {topic} [{type_name}] "
+                                   f"({'reliable' if reliable else 'best effort'}, "
+                                   f"{'transient local' if latched else 'volatile'})")
+
+    def _on_raw(self, topic: str, data: bytes):
+        self.writer.write_raw(topic, data, self.get_clock().now().nanoseconds)
+
+    def close(self):
+        path = self.writer.close()
+        self.get_logger().info(f"wrote {self.writer.message_count} messages to {path}")
+
+
+def _desc(text: str):
+    from rcl_interfaces.msg import ParameterDescriptor  # noqa: PLC0415
+
+    return ParameterDescriptor(description=text)
+
+
+def main(args=None):
+    raise SystemExit(run_node(McapRecorder, args))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,27 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "ct_calib_nodes"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="Metrology cell team",
+    maintainer_email="metrology@example.com",
+    description="Cone-beam CT geometry calibration (Ferrucci et al. 2020) as ROS 2 nodes",
+    license="Apache-2.0",
+    entry_points={
+        "console_scripts": [
+            "mcap_recorder = ct_calib_nodes.nodes.mcap_recorder:main",
+        ],
+    },
+)
