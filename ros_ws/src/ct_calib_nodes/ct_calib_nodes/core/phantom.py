@@ -187,8 +187,12 @@ class ReferenceObject:
 HELIX49_RADIUS_M = 0.0375          # sphere-centre radius: tube outer radius + sphere radius
 HELIX49_DIAMETER_M = 0.003
 HELIX49_Y_SPAN_M = (-0.048, 0.048)
-HELIX49_N_HELICES = 7
-HELIX49_TURN_RAD = 2.0 * np.pi * 3.0 / 7.0 + 0.09   # azimuth step between height-neighbours
+# Azimuth step between height-neighbours. Chosen by scanning the step in
+# 0.005 rad increments over [0, pi] for the lowest fraction of overlapping
+# shadows over a rotation at the default scenario geometry, among layouts
+# whose largest azimuth gap is below 2.5 x 360/49 deg (so the spheres cover
+# the circumference). Near-opposite neighbours give a double helix.
+HELIX49_TURN_RAD = 3.07
 
 
 def multi_helix_centres(n: int, radius_m: float, y_min_m: float, y_max_m: float,
@@ -217,10 +221,13 @@ def helix49(center_uncertainty_m: float | None = 1.0e-6) -> ReferenceObject:
     36 mm, wall 1 mm, length 110 mm); the centres lie at radius 37.5 mm
     (tube radius + sphere radius: the spheres touch the tube), heights from
     -48 mm to +48 mm in 2 mm steps. Consecutive spheres in height are
-    ``HELIX49_TURN_RAD`` (3/7 of a turn plus 0.09 rad, about 159.4 deg) apart in azimuth,
-    so they form 7 interleaved helices and the spheres nearest in height are
-    nearly opposite each other, which keeps shadow overlaps rare. Sphere 1 is
-    on +Z of {OF} at the bottom (y = -48 mm).
+    ``HELIX49_TURN_RAD`` = 3.07 rad (175.9 deg) apart in azimuth: the spheres
+    nearest in height sit nearly opposite each other, and the odd and even
+    spheres form two interleaved helices (4 mm rise, -8.2 deg azimuth per
+    sphere, each turning by 197 deg over the height; largest azimuth gap
+    8.2 deg). This keeps shadow overlaps rare (about 3 % of sphere views
+    over 360 views at the default scenario geometry, see doc/ct_render.md).
+    Sphere 1 is on +Z of {OF} at the bottom (y = -48 mm).
 
     Parameters
     ----------

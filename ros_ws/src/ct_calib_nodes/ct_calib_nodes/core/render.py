@@ -16,9 +16,9 @@ Image formation (all in the detector frame {DF}, detector plane z = 0):
 5. Noise: counts ~ Poisson(flat_field_counts * T) (see ``poisson_exact_below``).
 6. Output: mono16 counts (clipped to 0..65535) or float32 I/I0.
 
-Only the neighbourhood of each sphere shadow is ray traced at the full
-sub-sampling; spheres whose boxes touch are traced together so overlaps are
-exact. The tube outside those boxes is traced at ``tube_oversample``.
+Only the neighbourhood (bounding box) of each sphere shadow is ray traced at
+the full sub-sampling, each box with every sphere whose box meets it, so
+overlaps are exact. The tube outside those boxes is traced at ``tube_oversample``.
 
 Hidden physics (all off by default; the solvers are never told about them):
 
@@ -298,54 +298,81 @@ def true_rotary_angle(alpha_rad: float, settings: RenderSettings) -> float:
                  * np.sin(alpha_rad + settings.encoder_phase_rad))
 
 
-def sphere_chords(source_df_m, points_df_m, centre_df_m, radius_m) -> np.ndarray:
-    """Chord length [m] of the rays S -> P through one sphere; points (..., 3) -> (...)."""
-    e = points_df_m - source_df_m
-    e = e / np.linalg.norm(e, axis=-1, keepdims=True)
-    w = centre_df_m - source_df_m
-    cr = np.cross(w, e)
-    d2 = np.sum(cr * cr, axis=-1)
+def sphere_chords(source_df_m, x_m, y_m, centre_df_m, radius_m) -> np.ndarray:
+    """Chord length [m] through one sphere of the rays from S to (x, y, 0) in {DF}.
+
+    Parameters
+    ----------
+    source_df_m : array_like of shape (3,)
+    x_m, y_m : ndarray of shape (...)
+        Landing points in the detector plane [m].
+    centre_df_m : array_like of shape (3,)
+    radius_m : float
+
+    Returns
+    -------
+    ndarray of shape (...)
+        ``2 sqrt(r^2 - d^2)`` with d the distance of the sphere centre from the ray.
+    """
+    s = np.asarray(source_df_m, dtype=float)
+    w = np.asarray(centre_df_m, dtype=float) - s
+    gx = x_m - s[0]
+    gy = y_m - s[1]
+    gz = -s[2]
+    wg = w[0] * gx + w[1] * gy + w[2] * gz
+    g2 = gx * gx + gy * gy + gz * gz
+    d2 = (w @ w) - wg * wg / g2
     return 2.0 * np.sqrt(np.maximum(radius_m * radius_m - d2, 0.0))
 
 
-def _cylinder_chord(s, e, a0, ax, half_h, rad):
-    """Length of ray S + t e (t >= 0, |e| = 1) inside a finite solid cylinder."""
-    w = s - a0
-    wa = w @ ax
-    ea = e @ ax
-    wp = w - wa * ax
-    ep = e - ea[..., None] * ax
-    qa = np.sum(ep * ep, axis=-1)
-    qb = 2.0 * (ep @ wp)
-    qc = wp @ wp - rad * rad
-    disc = qb * qb - 4.0 * qa * qc
-    ok = (disc > 0) & (qa > 1e-15)
-    sq = np.sqrt(np.where(ok, disc, 0.0))
-    qa_safe = np.where(ok, qa, 1.0)
-    t1 = (-qb - sq) / (2.0 * qa_safe)
-    t2 = (-qb + sq) / (2.0 * qa_safe)
-    # slab |wa + t ea| <= half_h
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ta = (-half_h - wa) / ea
-        tb = (half_h - wa) / ea
-    lo = np.where(np.abs(ea) > 1e-15, np.minimum(ta, tb), -np.inf)
-    hi = np.where(np.abs(ea) > 1e-15, np.maximum(ta, tb), np.inf)
-    inslab = np.abs(ea) > 1e-15
-    inslab = inslab | (np.abs(wa) <= half_h)
-    lo = np.maximum(np.maximum(lo, t1), 0.0)
-    hi = np.minimum(hi, t2)
-    return np.where(ok & inslab, np.maximum(hi - lo, 0.0), 0.0)
+def tube_chords(source_df_m, x_m, y_m, tube_df) -> np.ndarray:
+    """Chord length [m] through a hollow finite cylinder of the rays S -> (x, y, 0).
 
+    Parameters
+    ----------
+    source_df_m : array_like of shape (3,)
+    x_m, y_m : ndarray of shape (...)
+    tube_df : tuple
+        (axis point A0 (3,), unit axis a (3,), half height [m], outer radius
+        [m], inner radius [m]) in {DF}; the tube spans A0 + t a, |t| <= half height.
 
-def tube_chords(source_df_m, points_df_m, tube_df) -> np.ndarray:
-    """Chord length [m] through the hollow tube wall; points (..., 3) -> (...)."""
+    Returns
+    -------
+    ndarray of shape (...)
+    """
     a0, ax, half_h, ro, ri = tube_df
-    e = points_df_m - source_df_m
-    e = e / np.linalg.norm(e, axis=-1, keepdims=True)
-    out = _cylinder_chord(source_df_m, e, a0, ax, half_h, ro)
-    if ri > 0:
-        out = out - _cylinder_chord(source_df_m, e, a0, ax, half_h, ri)
-    return np.maximum(out, 0.0)
+    s = np.asarray(source_df_m, dtype=float)
+    w = s - a0                        # ray X(t) = S + t g, t in [0, 1] to the detector
+    wa = w @ ax
+    wp = w - wa * ax
+    gx = x_m - s[0]
+    gy = y_m - s[1]
+    gz = -s[2]
+    ga = ax[0] * gx + ax[1] * gy + ax[2] * gz
+    g2 = gx * gx + gy * gy + gz * gz
+    qa = g2 - ga * ga                 # |g_perp|^2
+    hb = wp[0] * gx + wp[1] * gy + wp[2] * gz   # g_perp . w_perp
+    # axial slab |wa + t ga| <= half_h
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta = (-half_h - wa) / ga
+        tb = (half_h - wa) / ga
+    par = np.abs(ga) < 1e-15
+    lo = np.where(par, np.where(abs(wa) <= half_h, -np.inf, np.inf), np.minimum(ta, tb))
+    hi = np.where(par, np.where(abs(wa) <= half_h, np.inf, -np.inf), np.maximum(ta, tb))
+    lo = np.maximum(lo, 0.0)
+    out = np.zeros(np.shape(qa))
+    wp2 = wp @ wp
+    for sign, rad in ((1.0, ro), (-1.0, ri)):
+        if rad <= 0:
+            continue
+        disc = hb * hb - qa * (wp2 - rad * rad)
+        ok = disc > 0
+        sq = np.sqrt(np.where(ok, disc, 0.0))
+        t1 = (-hb - sq) / qa
+        t2 = (-hb + sq) / qa
+        seg = np.minimum(hi, t2) - np.maximum(lo, t1)
+        out += sign * np.where(ok, np.maximum(seg, 0.0), 0.0)
+    return np.maximum(out, 0.0) * np.sqrt(g2)
 
 
 # --------------------------------------------------------------------------
@@ -443,40 +470,17 @@ def frame_truth(static_w, motion, alpha_rad, ref: ReferenceObject, detector: Det
 # Rendering
 # --------------------------------------------------------------------------
 
-def _boxes_clusters(boxes):
-    """Union-find of intersecting integer boxes (c0, c1, r0, r1) inclusive."""
-    n = len(boxes)
-    parent = list(range(n))
-
-    def find(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    b = np.asarray(boxes)
-    for i in range(n):
-        inter = ((b[i, 0] <= b[:, 1]) & (b[:, 0] <= b[i, 1]) & (b[i, 2] <= b[:, 3]) & (b[:, 2] <= b[i, 3]))
-        for j in np.nonzero(inter)[0]:
-            if j > i:
-                ri, rj = find(i), find(j)
-                if ri != rj:
-                    parent[rj] = ri
-    groups = {}
-    for i in range(n):
-        groups.setdefault(find(i), []).append(i)
-    return list(groups.values())
-
-
 def _sample_points(detector, c0, c1, r0, r1, os, k1):
-    """Physical landing points (x, y, 0) in {DF} of the sub-samples of a pixel box."""
+    """Physical landing points x, y [m] in {DF} of the sub-samples of a pixel box."""
     sub = (np.arange(os) + 0.5) / os - 0.5
     cols = (np.arange(c0, c1 + 1)[:, None] + sub[None, :]).ravel()
     rows = (np.arange(r0, r1 + 1)[:, None] + sub[None, :]).ravel()
     x, y = detector.metric_from_pixels(cols[None, :], rows[:, None])
-    xy = np.stack(np.broadcast_arrays(x, y), axis=-1)
-    xy = undistort(xy, k1)
-    return np.concatenate([xy, np.zeros(xy.shape[:-1] + (1,))], axis=-1)   # (H*os, W*os, 3)
+    x, y = np.broadcast_arrays(x, y)
+    if k1 != 0.0:
+        xy = undistort(np.stack([x, y], axis=-1), k1)
+        x, y = xy[..., 0], xy[..., 1]
+    return x, y                                  # each (H*os, W*os)
 
 
 def _block_mean(a, os):
@@ -532,9 +536,9 @@ def render_projection(static_w, motion, alpha_rad, ref: ReferenceObject, detecto
     radii = ref.radii_m
     mu_s = settings.mu_sphere_per_m
     # textbook mode: evaluate sphere i's exact shadow at X + (ellipse centre - centre projection)
-    shift = np.zeros((ref.n_spheres, 3))
+    shift = np.zeros((ref.n_spheres, 2))
     if not settings.ellipse_centre_bias:
-        shift[:, :2] = ell_m - cp_m
+        shift[:] = ell_m - cp_m
 
     trans = np.ones((detector.rows, detector.cols), dtype=np.float32)
     n_rays = 0
@@ -562,8 +566,8 @@ def render_projection(static_w, motion, alpha_rad, ref: ReferenceObject, detecto
         r1 = min(int(np.ceil(rr.max())) + 1, detector.rows - 1)
         if c0 <= c1 and r0 <= r1:
             tos = int(settings.tube_oversample)
-            pts = _sample_points(detector, c0, c1, r0, r1, tos, k1)
-            tt = np.exp(-mu_t * tube_chords(src, pts, tube_df))
+            xs, ys = _sample_points(detector, c0, c1, r0, r1, tos, k1)
+            tt = np.exp(-mu_t * tube_chords(src, xs, ys, tube_df))
             n_rays += tt.size
             trans[r0:r1 + 1, c0:c1 + 1] = _block_mean(tt, tos) if tos > 1 else tt
 
@@ -575,22 +579,23 @@ def render_projection(static_w, motion, alpha_rad, ref: ReferenceObject, detecto
                       np.floor(ell_px[:, 1] - half), np.ceil(ell_px[:, 1] + half)], axis=1).astype(int)
     onscreen = ((boxes[:, 1] >= 0) & (boxes[:, 0] <= detector.cols - 1)
                 & (boxes[:, 3] >= 0) & (boxes[:, 2] <= detector.rows - 1))
-    idx = np.nonzero(onscreen)[0]
-    if idx.size:
-        for group in _boxes_clusters(boxes[idx]):
-            members = idx[group]
-            c0 = max(int(boxes[members, 0].min()), 0)
-            c1 = min(int(boxes[members, 1].max()), detector.cols - 1)
-            r0 = max(int(boxes[members, 2].min()), 0)
-            r1 = min(int(boxes[members, 3].max()), detector.rows - 1)
-            pts = _sample_points(detector, c0, c1, r0, r1, os_, k1)
-            line = np.zeros(pts.shape[:2])
-            for i in members:
-                line += mu_s * sphere_chords(src, pts + shift[i], centres[i], radii[i])
-            if tube_df is not None:
-                line += mu_t * tube_chords(src, pts, tube_df)
-            n_rays += line.size
-            trans[r0:r1 + 1, c0:c1 + 1] = _block_mean(np.exp(-line), os_)
+    # Each on-screen sphere's box is traced with every sphere whose box meets
+    # it. A sphere's shadow lies inside its own box, so any sphere that
+    # shadows a pixel of box i is among those, and the pixels shared by two
+    # boxes get the same (exact) value from either: writing order is irrelevant.
+    b = boxes
+    for i in np.nonzero(onscreen)[0]:
+        c0, c1 = max(b[i, 0], 0), min(b[i, 1], detector.cols - 1)
+        r0, r1 = max(b[i, 2], 0), min(b[i, 3], detector.rows - 1)
+        members = np.nonzero((b[:, 0] <= c1) & (c0 <= b[:, 1]) & (b[:, 2] <= r1) & (r0 <= b[:, 3]))[0]
+        xs, ys = _sample_points(detector, c0, c1, r0, r1, os_, k1)
+        line = np.zeros(xs.shape)
+        for j in members:
+            line += mu_s * sphere_chords(src, xs + shift[j, 0], ys + shift[j, 1], centres[j], radii[j])
+        if tube_df is not None:
+            line += mu_t * tube_chords(src, xs, ys, tube_df)
+        n_rays += line.size
+        trans[r0:r1 + 1, c0:c1 + 1] = _block_mean(np.exp(-line), os_)
 
     if settings.blur_sigma_px > 0:
         trans = cv2.GaussianBlur(trans, (0, 0), settings.blur_sigma_px,
