@@ -1,0 +1,254 @@
+"""A small dense Levenberg-Marquardt solver with robust losses and covariance.
+
+Nielsen's damping update with More's diagonal scaling (D = running maximum of
+the column norms of J), normal equations solved by Cholesky of the 13 x 13
+(or so) matrix J^T J: the problems here are tall and thin (tens of
+thousands of residuals, a dozen parameters), so forming J^T J is the cheap
+part and the cost per iteration is one residual+Jacobian evaluation.
+
+Robust losses follow scipy.optimize.least_squares' definitions
+(rho(z), z = (r / f_scale)^2) and are applied by iteratively reweighting
+residuals and Jacobian with sqrt(rho'(z)) (the "IRLS" form, which drops the
+rho'' term of the Gauss-Newton Hessian, as scipy does for rho'' < 0).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+LOSSES = ("linear", "huber", "soft_l1", "cauchy", "arctan")
+
+
+def loss_rho(z: np.ndarray, loss: str):
+    """rho(z) and rho'(z) of scipy's robust losses, z = (r / f_scale)^2 >= 0."""
+    if loss == "linear":
+        return z, np.ones_like(z)
+    if loss == "huber":
+        small = z <= 1.0
+        sz = np.sqrt(z)
+        return np.where(small, z, 2.0 * sz - 1.0), np.where(small, 1.0, 1.0 / np.maximum(sz, 1e-300))
+    if loss == "soft_l1":
+        t = 1.0 + z
+        return 2.0 * (np.sqrt(t) - 1.0), 1.0 / np.sqrt(t)
+    if loss == "cauchy":
+        return np.log1p(z), 1.0 / (1.0 + z)
+    if loss == "arctan":
+        return np.arctan(z), 1.0 / (1.0 + z * z)
+    raise ValueError(f"unknown loss {loss!r}; choose one of {LOSSES}")
+
+
+@dataclass(frozen=True)
+class LMResult:
+    """Outcome of :func:`levenberg_marquardt`.
+
+    Attributes
+    ----------
+    x : ndarray of shape (n,)
+    residuals : ndarray of shape (m,)
+        Unweighted residuals at x.
+    jac : ndarray of shape (m, n)
+        Unweighted Jacobian at x.
+    weights : ndarray of shape (m,)
+        Final IRLS weights sqrt(rho'(z)) times the whitening 1/sigma (ones for
+        the linear loss without sigma).
+    cost : float
+        0.5 f^2 sum rho((r / (sigma f))^2) at x.
+    nfev, njev, n_iter : int
+    status : int
+        1 ftol, 2 xtol, 3 gtol, 0 max_iter, -1 non-finite start, -2 damping overflow.
+    message : str
+    success : bool
+    """
+
+    x: np.ndarray
+    residuals: np.ndarray
+    jac: np.ndarray
+    weights: np.ndarray
+    cost: float
+    nfev: int
+    njev: int
+    n_iter: int
+    status: int
+    message: str
+    success: bool
+
+
+def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=1.0, max_iter=100,
+                        ftol=1e-10, xtol=1e-10, gtol=1e-10, mu0=1e-7) -> LMResult:
+    """Minimise 0.5 sum rho((r_i(x) / (sigma_i f))^2) f^2 by Levenberg-Marquardt.
+
+    Parameters
+    ----------
+    fun : callable x -> r, shape (m,)
+    fun_jac : callable x -> (r (m,), J (m, n))
+    x0 : array_like of shape (n,)
+    sigma : ndarray of shape (m,) or None
+        Standard deviation of each residual (whitening); None means 1.
+    loss : str
+        One of :data:`LOSSES`.
+    f_scale : float
+        Soft threshold of the robust loss, in units of the whitened residual.
+    max_iter : int
+    ftol, xtol, gtol : float
+        Relative cost decrease, relative scaled step and scaled gradient
+        (cosine) tolerances.
+    mu0 : float
+        Initial damping relative to max(diag(J^T J)).
+    """
+    if loss not in LOSSES:
+        raise ValueError(f"unknown loss {loss!r}; choose one of {LOSSES}")
+    if not (np.isfinite(f_scale) and f_scale > 0):
+        raise ValueError(f"f_scale must be > 0, got {f_scale}")
+    x = np.array(x0, dtype=float)
+    inv_sig = None if sigma is None else 1.0 / np.asarray(sigma, dtype=float)
+
+    def weigh(r):
+        rw = r if inv_sig is None else r * inv_sig
+        z = (rw / f_scale) ** 2
+        rho, rho1 = loss_rho(z, loss)
+        cost = 0.5 * f_scale ** 2 * float(np.sum(rho))
+        sw = np.sqrt(rho1)
+        if inv_sig is not None:
+            sw = sw * inv_sig
+        return cost, sw
+
+    r, jac = fun_jac(x)
+    nfev = njev = 1
+    if not (np.all(np.isfinite(r)) and np.all(np.isfinite(jac))):
+        return LMResult(x, r, jac, np.ones_like(r), np.inf, nfev, njev, 0, -1,
+                        "residuals or Jacobian not finite at the start point", False)
+    cost, sw = weigh(r)
+    scaled = loss != "linear" or inv_sig is not None
+
+    def normal(r, jac, sw):
+        if scaled:
+            jw = jac * sw[:, None]
+            return jw.T @ jw, jw.T @ (r * sw)
+        return jac.T @ jac, jac.T @ r
+
+    a, g = normal(r, jac, sw)
+    dscale = np.sqrt(np.maximum(np.diag(a), 1e-300))
+    mu = mu0 * float(np.max(np.diag(a)) / np.max(dscale ** 2))
+    nu = 2.0
+    status, message = 0, "maximum number of iterations reached"
+    it = 0
+    for it in range(1, max_iter + 1):
+        # scaled gradient test: max_i |g_i| / (||J_i|| ||r||)
+        rn = np.sqrt(2.0 * cost) if cost > 0 else 0.0
+        if rn == 0.0 or np.max(np.abs(g) / (dscale * rn)) <= gtol:
+            status, message = 3, "gradient tolerance reached"
+            break
+        while True:
+            lhs = a + mu * np.diag(dscale ** 2)
+            try:
+                cf = np.linalg.cholesky(lhs)
+                step = -np.linalg.solve(cf.T, np.linalg.solve(cf, g))
+            except np.linalg.LinAlgError:
+                step = -np.linalg.lstsq(lhs, g, rcond=None)[0]
+            if np.linalg.norm(dscale * step) <= xtol * (np.linalg.norm(dscale * x) + xtol):
+                status, message = 2, "step tolerance reached"
+                break
+            x_new = x + step
+            r_new = fun(x_new)
+            nfev += 1
+            cost_new, _ = weigh(r_new) if np.all(np.isfinite(r_new)) else (np.inf, None)
+            pred = 0.5 * float(step @ (mu * dscale ** 2 * step - g))
+            ratio = (cost - cost_new) / pred if pred > 0 else -1.0
+            if ratio > 0:
+                break
+            mu *= nu
+            nu *= 2.0
+            if mu > 1e30:
+                status, message = -2, "damping overflow: no decrease found"
+                break
+        if status in (2, -2):
+            break
+        decrease = cost - cost_new
+        x = x_new
+        r, jac = fun_jac(x)
+        nfev += 1
+        njev += 1
+        cost, sw = weigh(r)
+        a, g = normal(r, jac, sw)
+        dscale = np.maximum(dscale, np.sqrt(np.maximum(np.diag(a), 1e-300)))
+        mu *= max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
+        nu = 2.0
+        if decrease <= ftol * cost:
+            status, message = 1, "relative cost decrease below ftol"
+            break
+    return LMResult(x=x, residuals=r, jac=jac, weights=sw, cost=cost, nfev=nfev, njev=njev,
+                    n_iter=it, status=status, message=message, success=status > 0)
+
+
+@dataclass(frozen=True)
+class CovarianceInfo:
+    """Covariance of a least-squares estimate.
+
+    Attributes
+    ----------
+    covariance : ndarray of shape (n, n)
+        s^2 (J_w^T J_w)^-1 with s^2 = the residual variance factor.
+    normal_inverse : ndarray of shape (n, n)
+        (J_w^T J_w)^-1: the covariance per unit variance of the whitened
+        residuals. With known sigma it IS the Cramer-Rao bound.
+    variance_factor : float
+        s^2 = sum(w r)^2 / (m - n) (reduced chi-square; in px^2 when no
+        sigma is given).
+    condition : float
+        Condition number of the column-scaled J_w.
+    rank_deficient : bool
+    weakest_direction : ndarray of shape (n,)
+        Unit parameter-space direction (in column-scaled units) with the
+        smallest singular value.
+    """
+
+    covariance: np.ndarray
+    normal_inverse: np.ndarray
+    variance_factor: float
+    condition: float
+    rank_deficient: bool
+    weakest_direction: np.ndarray
+
+
+def covariance_from_jacobian(jac, residuals, weights=None, cond_limit=1e10) -> CovarianceInfo:
+    """Parameter covariance from the Jacobian and the residual variance.
+
+    Parameters
+    ----------
+    jac : ndarray of shape (m, n)
+    residuals : ndarray of shape (m,)
+    weights : ndarray of shape (m,) or None
+        Multiplies rows (whitening and robust IRLS weights).
+    cond_limit : float
+        Condition number (of the column-scaled weighted Jacobian) above
+        which the problem is declared rank deficient.
+    """
+    jw = jac if weights is None else jac * weights[:, None]
+    rw = residuals if weights is None else residuals * weights
+    m, n = jw.shape
+    a = jw.T @ jw
+    col = np.sqrt(np.maximum(np.diag(a), 1e-300))
+    an = a / np.outer(col, col)
+    evals, evecs = np.linalg.eigh(an)
+    evals = np.maximum(evals, 0.0)
+    cond = float(np.sqrt(evals[-1] / evals[0])) if evals[0] > 0 else np.inf
+    rank_def = not (cond < cond_limit)
+    with np.errstate(divide="ignore"):
+        inv_e = np.where(evals > evals[-1] * 1e-300, 1.0 / evals, 0.0)
+    an_inv = (evecs * inv_e) @ evecs.T
+    ninv = an_inv / np.outer(col, col)
+    dof = max(m - n, 1)
+    s2 = float(rw @ rw) / dof
+    return CovarianceInfo(covariance=s2 * ninv, normal_inverse=ninv, variance_factor=s2,
+                          condition=cond, rank_deficient=rank_def, weakest_direction=evecs[:, 0].copy())
+
+
+def correlation_from_covariance(cov: np.ndarray) -> np.ndarray:
+    """Correlation matrix (n, n) of a covariance matrix (zeros where a variance is 0)."""
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c = cov / np.outer(sd, sd)
+    c[~np.isfinite(c)] = 0.0
+    return c

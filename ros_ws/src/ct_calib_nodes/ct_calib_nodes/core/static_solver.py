@@ -1,0 +1,386 @@
+"""Static CT geometry at stage position k = 1 (Ferrucci et al. 2020, section 3.1).
+
+Levenberg-Marquardt minimisation of the reprojection error (eq. 3) over all
+spheres and all projections, 7 instrument + 6 object-pose parameters (+ the
+parameters of any optional terms), with
+
+* a start derived from the data (per-sphere trajectory fits under the
+  nominal geometry, then a rigid fit to the calibrated centres), so no
+  near-truth start is needed;
+* an optional robust loss;
+* the parameter covariance from the Jacobian and the residual variance,
+  with correlations, and explicit failure for degenerate inputs.
+
+Entry point: :func:`solve_static`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .ct_model import param_names, param_units, static_residuals, static_residuals_jac
+from .geometry import DetectorFrameGeometry, DetectorSpec, static_to_detector_frame
+from .lm import LOSSES, correlation_from_covariance, covariance_from_jacobian, levenberg_marquardt
+from .observations import CentreObservations
+from .terms import check_terms
+
+
+def _plain(v):
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, (np.floating, np.integer, np.bool_)):
+        return v.item()
+    if isinstance(v, dict):
+        return {k: _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    return v
+
+
+@dataclass(frozen=True)
+class StaticResult:
+    """Solution of the static geometry at k = 1.
+
+    Attributes
+    ----------
+    x : ndarray of shape (n,)
+        Estimate: w (13, geometry.py order) then term parameters.
+    names, units : tuple of str, length n
+    covariance : ndarray of shape (n, n)
+        s^2 (J^T W J)^-1 with s^2 the residual variance factor (so it holds
+        whether or not ``sigma_px`` was known). NaN if the solve failed.
+    correlation : ndarray of shape (n, n)
+    normal_inverse : ndarray of shape (n, n)
+        (J^T W J)^-1; with the true pixel sigma, ``sigma^2 * normal_inverse``
+        is the Cramer-Rao bound (when ``sigma_px`` was given it already is).
+    variance_factor : float
+        Reduced chi-square s^2 (px^2 when no sigma_px was given).
+    residuals_px : ndarray of shape (Q, 2)
+        modelled - observed (col, row) at the estimate.
+    rms_px : float
+        Root mean square of all residual coordinates.
+    cost : float
+    success : bool
+    status : int
+        LM status (see lm.LMResult); -10 for a rejected (degenerate) input.
+    message : str
+    nfev, njev, n_iter : int
+    n_obs, n_views, n_spheres : int
+    condition : float
+        Condition number of the column-scaled weighted Jacobian.
+    geometry : DetectorFrameGeometry or None
+        The solution in {DF} (eqs 4-7).
+    x0 : ndarray of shape (n,)
+        Start point used.
+    loss : str
+    f_scale_px : float or None
+    terms : tuple of Term
+    centres_of_m : ndarray of shape (N, 3)
+        The reference centres the solution refers to.
+    weights : ndarray of shape (2Q,)
+        Final IRLS / whitening weights.
+    """
+
+    x: np.ndarray
+    names: tuple
+    units: tuple
+    covariance: np.ndarray
+    correlation: np.ndarray
+    normal_inverse: np.ndarray
+    variance_factor: float
+    residuals_px: np.ndarray
+    rms_px: float
+    cost: float
+    success: bool
+    status: int
+    message: str
+    nfev: int
+    njev: int
+    n_iter: int
+    n_obs: int
+    n_views: int
+    n_spheres: int
+    condition: float
+    geometry: DetectorFrameGeometry | None
+    x0: np.ndarray
+    loss: str
+    f_scale_px: float | None
+    terms: tuple = ()
+    centres_of_m: np.ndarray = field(default=None, repr=False)
+    weights: np.ndarray = field(default=None, repr=False)
+
+    @property
+    def w(self) -> np.ndarray:
+        """The 13 static parameters."""
+        return self.x[:13]
+
+    @property
+    def term_params(self) -> np.ndarray:
+        """Parameters of the optional terms, shape (p,)."""
+        return self.x[13:]
+
+    @property
+    def std(self) -> np.ndarray:
+        """Standard uncertainties sqrt(diag(covariance)), shape (n,)."""
+        return np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+
+    def strong_correlations(self, threshold: float = 0.9):
+        """Parameter pairs with |correlation| >= threshold: list of (name_a, name_b, rho)."""
+        c = self.correlation
+        out = []
+        for i in range(len(self.names)):
+            for j in range(i + 1, len(self.names)):
+                if abs(c[i, j]) >= threshold:
+                    out.append((self.names[i], self.names[j], float(c[i, j])))
+        return out
+
+    def to_dict(self) -> dict:
+        """Plain-Python dict (lists, floats, str) for YAML / JSON export."""
+        g = self.geometry
+        return _plain({
+            "names": list(self.names), "units": list(self.units), "x": self.x,
+            "std": self.std, "covariance": self.covariance, "correlation": self.correlation,
+            "variance_factor": self.variance_factor, "rms_px": self.rms_px, "cost": self.cost,
+            "success": self.success, "status": self.status, "message": self.message,
+            "nfev": self.nfev, "njev": self.njev, "n_iter": self.n_iter, "n_obs": self.n_obs,
+            "n_views": self.n_views, "n_spheres": self.n_spheres, "condition": self.condition,
+            "loss": self.loss, "f_scale_px": self.f_scale_px,
+            "terms": [t.name for t in self.terms],
+            "strong_correlations": [list(c) for c in self.strong_correlations(0.9)],
+            "geometry_df": None if g is None else {
+                "source_df_m": g.source_df_m, "stage_df_m": g.stage_df_m,
+                "axis_df": g.axis_df, "centres_df_m": g.centres_df_m},
+        })
+
+
+# --------------------------------------------------------------------------- inputs
+def _check_inputs(obs, centres_of_m, detector, srd_m, sdd_m):
+    if not isinstance(obs, CentreObservations):
+        raise ValueError(f"obs must be a CentreObservations, got {type(obs).__name__}")
+    if not isinstance(detector, DetectorSpec):
+        raise ValueError(f"detector must be a DetectorSpec, got {type(detector).__name__}")
+    c = np.asarray(centres_of_m, dtype=float)
+    if c.ndim != 2 or c.shape[1] != 3 or c.shape[0] < 1:
+        raise ValueError(f"centres_of_m must have shape (N, 3), got {c.shape}")
+    if not np.all(np.isfinite(c)):
+        raise ValueError("centres_of_m contains NaN or inf")
+    obs.check_spheres(len(c))
+    for name, v in (("srd_reported_m", srd_m), ("sdd_reported_m", sdd_m)):
+        if not (np.isscalar(v) or np.ndim(v) == 0) or not np.isfinite(float(v)) or float(v) <= 0:
+            raise ValueError(f"{name} must be a positive finite scalar, got {v!r}")
+    if float(sdd_m) <= float(srd_m):
+        raise ValueError(f"sdd_reported_m ({sdd_m}) must exceed srd_reported_m ({srd_m})")
+    return c, float(srd_m), float(sdd_m)
+
+
+def _degeneracy(obs, centres, n_params, min_obs_per_param=2):
+    """Reasons the static problem cannot be solved, or None."""
+    seen = np.unique(obs.sphere_index)
+    if obs.n_obs * 2 < n_params + 1:
+        return f"too few observations: {obs.n_obs} centres (2 coordinates each) for {n_params} parameters"
+    if seen.size < 4:
+        return f"too few spheres: {seen.size} distinct spheres observed, need at least 4"
+    if obs.n_views < 3:
+        return f"too few projections: {obs.n_views}, need at least 3 for the static solve"
+    p = centres[seen] - centres[seen].mean(axis=0)
+    sv = np.linalg.svd(p, compute_uv=False)
+    if sv[1] <= 1e-6 * sv[0]:
+        return "degenerate reference object: the observed spheres are collinear"
+    return None
+
+
+def _object_angles(r: np.ndarray):
+    """(rho_X, rho_Y, rho_Z) with r = Ry(rho_Y) Rz(rho_Z) Rx(rho_X)."""
+    rz = np.arcsin(np.clip(r[1, 0], -1.0, 1.0))
+    rx = np.arctan2(-r[1, 2], r[1, 1])
+    ry = np.arctan2(-r[2, 0], r[0, 0])
+    return rx, ry, rz
+
+
+def _kabsch(a, b):
+    """Rotation r and translation t minimising |r a_i + t - b_i|^2, a, b (N, 3)."""
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    h = (a - ca).T @ (b - cb)
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    r = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return r, cb - r @ ca
+
+
+def initial_guess(obs: CentreObservations, centres_of_m, detector: DetectorSpec, srd_reported_m: float,
+                  sdd_reported_m: float, terms=()):
+    """Start point derived from the data and nominal values only.
+
+    Instrument: nominal (z_R = reported SRD, detector centred at the stated
+    SDD, no tilt). Object pose: each sphere's k = 1, alpha = 0 position in
+    {SRF} is fitted from its own trajectory under the nominal geometry (a
+    2 x 2 linear least-squares problem per sphere:
+    ``t (-s X + c Z' + z_R) = c X + s Z'``, ``t = u / SDD``, then
+    ``Y = mean(v p_z / SDD)``), and the pose is the rigid (Kabsch) fit of
+    those positions to the calibrated centres.
+
+    Returns
+    -------
+    x0 : ndarray of shape (13 + p,)
+    n_used : int
+        Number of spheres whose trajectory entered the rigid fit.
+    """
+    terms = check_terms(terms)
+    c0, r0 = detector.centre_px
+    pitch = detector.pixel_pitch_m
+    t = (obs.uv_px[:, 0] - c0) * pitch / sdd_reported_m
+    tv = (r0 - obs.uv_px[:, 1]) * pitch / sdd_reported_m
+    ca, sa = np.cos(obs.alpha_rad), np.sin(obs.alpha_rad)
+    z_r = srd_reported_m
+    a1 = -t * sa - ca           # coefficient of X
+    a2 = t * ca - sa            # coefficient of Z'
+    b = -t * z_r
+    idx = obs.sphere_index
+    n = len(centres_of_m)
+    s11 = np.bincount(idx, a1 * a1, n)
+    s12 = np.bincount(idx, a1 * a2, n)
+    s22 = np.bincount(idx, a2 * a2, n)
+    b1 = np.bincount(idx, a1 * b, n)
+    b2 = np.bincount(idx, a2 * b, n)
+    cnt = np.bincount(idx, minlength=n)
+    det = s11 * s22 - s12 ** 2
+    ok = (cnt >= 3) & (det > 1e-12 * np.maximum(s11 * s22, 1e-300))
+    safe = np.where(ok, det, 1.0)
+    xs = (s22 * b1 - s12 * b2) / safe
+    zs = (s11 * b2 - s12 * b1) / safe
+    pz = -sa * xs[idx] + ca * zs[idx] + z_r
+    ys = np.bincount(idx, tv * pz, n) / np.maximum(cnt, 1)
+    c1 = np.stack([xs, ys, zs + z_r], axis=1)
+    w = np.zeros(13)
+    w[0] = z_r
+    w[3] = sdd_reported_m
+    if ok.sum() >= 3:
+        r, tr = _kabsch(centres_of_m[ok], c1[ok])
+        w[7:10] = tr
+        w[10:13] = _object_angles(r)
+    else:
+        w[9] = z_r
+    x0 = np.concatenate([w] + [t_.x0() for t_ in terms])
+    return x0, int(ok.sum())
+
+
+def _failed(obs, centres, terms, x0, message, status=-10):
+    n = x0.size
+    nan = np.full((n, n), np.nan)
+    return StaticResult(
+        x=x0, names=param_names(terms), units=param_units(terms), covariance=nan, correlation=nan,
+        normal_inverse=nan, variance_factor=np.nan, residuals_px=np.full((obs.n_obs, 2), np.nan),
+        rms_px=np.nan, cost=np.nan, success=False, status=status, message=message, nfev=0, njev=0,
+        n_iter=0, n_obs=obs.n_obs, n_views=obs.n_views, n_spheres=obs.n_spheres_seen, condition=np.inf,
+        geometry=None, x0=x0, loss="linear", f_scale_px=None, terms=tuple(terms), centres_of_m=centres,
+        weights=None)
+
+
+def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, srd_reported_m: float,
+                 sdd_reported_m: float, *, terms=(), loss: str = "linear", f_scale_px: float | None = None,
+                 x0=None, max_iter: int = 100, max_rms_px: float = 2.0, cond_limit: float = 1e10) -> StaticResult:
+    """Solve the static geometry at stage position k = 1 (section 3.1, eq. 3).
+
+    Parameters
+    ----------
+    obs : CentreObservations
+        All observed centres at k = 1 (any number of projections >= 3).
+    centres_of_m : array_like of shape (N, 3)
+        Calibrated sphere centres in {OF} [m].
+    detector : DetectorSpec
+        Size and pixel pitch (from ct_instrument.yaml).
+    srd_reported_m : float
+        Instrument-reported source-to-rotation-axis distance at k = 1 [m].
+    sdd_reported_m : float
+        Stated source-to-detector distance [m].
+    terms : sequence of Term
+        Optional model terms (terms.py), estimated with the geometry.
+    loss : {"linear", "huber", "soft_l1", "cauchy", "arctan"}
+        Robust loss. A robust solve first runs the linear loss, then
+        refines with the robust one.
+    f_scale_px : float, optional
+        Soft threshold of the robust loss [px]. Default: 2.5 times the
+        robust (MAD) standard deviation of the linear-loss residuals. With
+        ``obs.sigma_px`` given, it is divided by the median sigma.
+    x0 : array_like of shape (13 + p,), optional
+        Start point; default :func:`initial_guess` (from the data).
+    max_iter : int
+    max_rms_px : float
+        A converged fit whose robust residual scale exceeds this [px] is
+        reported as a failure (wrong local minimum or wrong identification).
+    cond_limit : float
+        Condition number above which the problem is declared degenerate.
+
+    Returns
+    -------
+    StaticResult
+    """
+    centres, srd, sdd = _check_inputs(obs, centres_of_m, detector, srd_reported_m, sdd_reported_m)
+    terms = check_terms(terms)
+    if loss not in LOSSES:
+        raise ValueError(f"unknown loss {loss!r}; choose one of {LOSSES}")
+    n_par = 13 + sum(t.n_params for t in terms)
+    if x0 is None:
+        start, n_used = initial_guess(obs, centres, detector, srd, sdd, terms)
+    else:
+        start = np.asarray(x0, dtype=float)
+        if start.shape != (n_par,) or not np.all(np.isfinite(start)):
+            raise ValueError(f"x0 must be {n_par} finite values, got shape {start.shape}")
+        n_used = None
+    reason = _degeneracy(obs, centres, n_par)
+    if reason is not None:
+        return _failed(obs, centres, terms, start, reason)
+    if n_used is not None and n_used < 3:
+        return _failed(obs, centres, terms, start,
+                       f"cannot initialise: only {n_used} spheres have a usable trajectory (>= 3 views)")
+
+    sigma = None if obs.sigma_px is None else np.repeat(obs.sigma_px, 2)
+    fun = lambda x: static_residuals(x, obs, centres, detector, terms)
+    fun_jac = lambda x: static_residuals_jac(x, obs, centres, detector, terms)
+    res = levenberg_marquardt(fun, fun_jac, start, sigma=sigma, max_iter=max_iter)
+    nfev, njev, nit = res.nfev, res.njev, res.n_iter
+    f_used = None
+    if loss != "linear":
+        rw = res.residuals if sigma is None else res.residuals / sigma
+        robust_sd = 1.4826 * float(np.median(np.abs(rw - np.median(rw))))
+        if f_scale_px is None:
+            f = 2.5 * max(robust_sd, 1e-12)
+            f_used = f if sigma is None else f * float(np.median(obs.sigma_px))
+        else:
+            if not (np.isfinite(f_scale_px) and f_scale_px > 0):
+                raise ValueError(f"f_scale_px must be > 0, got {f_scale_px}")
+            f_used = float(f_scale_px)
+            f = f_used if sigma is None else f_used / float(np.median(obs.sigma_px))
+        res = levenberg_marquardt(fun, fun_jac, res.x, sigma=sigma, loss=loss, f_scale=f, max_iter=max_iter)
+        nfev, njev, nit = nfev + res.nfev, njev + res.njev, nit + res.n_iter
+
+    cov = covariance_from_jacobian(res.jac, res.residuals, res.weights, cond_limit=cond_limit)
+    r2 = res.residuals.reshape(-1, 2)
+    rms = float(np.sqrt(np.mean(res.residuals ** 2)))
+    robust_px = 1.4826 * float(np.median(np.abs(res.residuals)))
+    success, message = res.success, res.message
+    names = param_names(terms)
+    if cov.rank_deficient:
+        success = False
+        d = cov.weakest_direction
+        top = np.argsort(-np.abs(d))[:3]
+        combo = " ".join(f"{d[i]:+.2f}*{names[i]}" for i in top)
+        message = (f"degenerate geometry: Jacobian condition {cov.condition:.3g} exceeds {cond_limit:.3g}; "
+                   f"undetermined combination ~ {combo}")
+    elif success and robust_px > max_rms_px:
+        success = False
+        message = (f"converged to a poor fit: robust residual scale {robust_px:.3g} px > {max_rms_px} px "
+                   "(local minimum, wrong identification or wrong nominal inputs)")
+    geom = None
+    if np.all(np.isfinite(res.x)):
+        geom = static_to_detector_frame(res.x[:13], centres)
+    return StaticResult(
+        x=res.x, names=names, units=param_units(terms), covariance=cov.covariance,
+        correlation=correlation_from_covariance(cov.covariance), normal_inverse=cov.normal_inverse,
+        variance_factor=cov.variance_factor, residuals_px=r2, rms_px=rms, cost=res.cost,
+        success=bool(success), status=res.status, message=message, nfev=nfev, njev=njev, n_iter=nit,
+        n_obs=obs.n_obs, n_views=obs.n_views, n_spheres=obs.n_spheres_seen, condition=cov.condition,
+        geometry=geom, x0=start, loss=loss, f_scale_px=f_used, terms=terms, centres_of_m=centres,
+        weights=res.weights)
