@@ -1,0 +1,16 @@
+#!/usr/bin/env bash
+# Set up (if needed) and run every test. Extra arguments go to pytest, e.g.
+#   bash scripts/test.sh -k mcap
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+bash "$ROOT/scripts/setup.sh"
+# shellcheck disable=SC1091
+source "$ROOT/scripts/env.sh"
+# DDS isolation: discovery stays on this machine, and each run gets its own domain id so
+# concurrent runs (or a neighbour's nodes) never see each other's traffic.
+export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( ( $$ + RANDOM ) % 100 + 1 ))}"
+export MPLBACKEND=Agg
+echo "[test] ROS_DOMAIN_ID=$ROS_DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=$ROS_AUTOMATIC_DISCOVERY_RANGE"
+cd "$ROOT"
+exec python -m pytest "$@"
