@@ -1,0 +1,281 @@
+"""Per-position stage error motions (Ferrucci et al. 2020, section 3.3, App. B).
+
+For each stage position k the six parameters dx_R, dy_R, dz_R, gamma_X,
+gamma_Y, gamma_Z are fitted by Levenberg-Marquardt to the observed centres at
+that position, on top of the k = 1 geometry in {DF} (eqs 4-7) from the
+static solve. Two modes, as in the paper: all projections ("multi") or a
+single projection ("single", the first one, j = 1, unless told otherwise).
+
+Uncertainty: ``covariance`` is CONDITIONAL on the static geometry (the
+static parameters taken as exact). ``covariance_total`` adds the static
+geometry's uncertainty, propagated linearly:
+``cov_total = cov_cond + A cov_static A^T`` with
+``A = d m / d x_static = -(J_m^T W J_m)^-1 J_m^T W J_s`` (implicit-function
+theorem at the optimum; J_s by central differences with steps of 0.1
+standard uncertainty of each static parameter). Note that the static part
+is COMMON to all positions (the same static estimate is used for every k),
+so the total covariances of different k are correlated; error_map treats
+positions as independent, which is exact for the conditional covariance
+and an approximation for the total one (see doc/ct_core.md).
+
+Entry point: :func:`solve_error_motion`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .ct_model import MotionKernel
+from .geometry import MOTION_PARAM_NAMES, MOTION_PARAM_UNITS, DetectorFrameGeometry, DetectorSpec, static_to_detector_frame
+from .lm import LOSSES, correlation_from_covariance, covariance_from_jacobian, levenberg_marquardt
+from .observations import CentreObservations
+from .static_solver import StaticResult, _plain
+from .terms import check_terms
+
+MODES = ("multi", "single")
+
+
+@dataclass(frozen=True)
+class MotionResult:
+    """Error motion of one stage position k relative to k = 1.
+
+    Attributes
+    ----------
+    x : ndarray of shape (6,)
+        dx_R, dy_R, dz_R [m], gamma_X, gamma_Y, gamma_Z [rad], in {DF}.
+    names, units : tuple of str
+    covariance : ndarray of shape (6, 6)
+        Conditional on the static geometry: s^2 (J^T W J)^-1.
+    covariance_total : ndarray of shape (6, 6) or None
+        Including the propagated static-geometry covariance (None when the
+        static uncertainty was not available or not requested).
+    correlation : ndarray of shape (6, 6)
+        Of ``covariance``.
+    normal_inverse : ndarray of shape (6, 6)
+    variance_factor : float
+    residuals_px : ndarray of shape (Q, 2)
+    rms_px, cost : float
+    success : bool
+    status : int
+    message : str
+    nfev, njev, n_iter, n_obs, n_views : int
+    mode : str
+    condition : float
+    x0 : ndarray of shape (6,)
+    srd_reported_k_m, srd_reported_1_m : float
+    static_sensitivity : ndarray of shape (6, n_static) or None
+        A = d m / d x_static; error_map uses it to build the joint covariance
+        of all positions (the static error is common to them).
+    """
+
+    x: np.ndarray
+    names: tuple
+    units: tuple
+    covariance: np.ndarray
+    covariance_total: np.ndarray | None
+    correlation: np.ndarray
+    normal_inverse: np.ndarray
+    variance_factor: float
+    residuals_px: np.ndarray
+    rms_px: float
+    cost: float
+    success: bool
+    status: int
+    message: str
+    nfev: int
+    njev: int
+    n_iter: int
+    n_obs: int
+    n_views: int
+    mode: str
+    condition: float
+    x0: np.ndarray
+    srd_reported_k_m: float
+    srd_reported_1_m: float
+    static_sensitivity: np.ndarray | None = None
+
+    @property
+    def std(self) -> np.ndarray:
+        """Conditional standard uncertainties, shape (6,)."""
+        return np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
+
+    @property
+    def std_total(self) -> np.ndarray | None:
+        """Standard uncertainties including the static geometry, shape (6,) or None."""
+        if self.covariance_total is None:
+            return None
+        return np.sqrt(np.maximum(np.diag(self.covariance_total), 0.0))
+
+    def to_dict(self) -> dict:
+        """Plain-Python dict for YAML / JSON export."""
+        return _plain({
+            "names": list(self.names), "units": list(self.units), "x": self.x, "std": self.std,
+            "std_total": self.std_total, "covariance": self.covariance,
+            "covariance_total": self.covariance_total, "correlation": self.correlation,
+            "variance_factor": self.variance_factor, "rms_px": self.rms_px, "cost": self.cost,
+            "success": self.success, "status": self.status, "message": self.message,
+            "nfev": self.nfev, "njev": self.njev, "n_iter": self.n_iter, "n_obs": self.n_obs,
+            "n_views": self.n_views, "mode": self.mode, "condition": self.condition,
+            "srd_reported_k_m": self.srd_reported_k_m, "srd_reported_1_m": self.srd_reported_1_m,
+        })
+
+
+def _failed(obs, mode, x0, srd_k, srd_1, message):
+    nan = np.full((6, 6), np.nan)
+    return MotionResult(x=x0, names=MOTION_PARAM_NAMES, units=MOTION_PARAM_UNITS, covariance=nan,
+                        covariance_total=None, correlation=nan, normal_inverse=nan, variance_factor=np.nan,
+                        residuals_px=np.full((obs.n_obs, 2), np.nan), rms_px=np.nan, cost=np.nan, success=False,
+                        status=-10, message=message, nfev=0, njev=0, n_iter=0, n_obs=obs.n_obs,
+                        n_views=obs.n_views, mode=mode, condition=np.inf, x0=x0, srd_reported_k_m=srd_k,
+                        srd_reported_1_m=srd_1)
+
+
+def solve_error_motion(obs_k: CentreObservations, static, detector: DetectorSpec, srd_reported_k_m: float,
+                       srd_reported_1_m: float, *, mode: str = "multi", view_index: int | None = None,
+                       include_static_uncertainty: bool = True, loss: str = "linear",
+                       f_scale_px: float | None = None, x0=None, terms=(), term_params=(),
+                       max_iter: int = 100, max_rms_px: float = 2.0, cond_limit: float = 1e10) -> MotionResult:
+    """Solve the error motion of stage position k (section 3.3).
+
+    Parameters
+    ----------
+    obs_k : CentreObservations
+        Observed centres at position k.
+    static : StaticResult or DetectorFrameGeometry
+        The k = 1 solution. With a StaticResult its terms (with their fitted
+        values) are applied and its covariance can be propagated; with a bare
+        DetectorFrameGeometry the result is conditional on it and ``terms`` /
+        ``term_params`` may be given explicitly.
+    detector : DetectorSpec
+    srd_reported_k_m, srd_reported_1_m : float
+        Instrument-reported SRD at position k and at k = 1 [m]; their
+        difference is the nominal travel, used for the start point only.
+    mode : {"multi", "single"}
+        All projections, or one projection (``view_index``, default the
+        first one: the paper's j = 1).
+    include_static_uncertainty : bool
+        Compute ``covariance_total`` (needs a successful StaticResult).
+    loss, f_scale_px
+        Robust loss as in solve_static (f_scale default 2.5 robust sigma).
+    x0 : array_like of shape (6,), optional
+        Start; default: the nominal travel along the source -> stage
+        direction in {DF}, no rotation.
+
+    Returns
+    -------
+    MotionResult
+    """
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    if loss not in LOSSES:
+        raise ValueError(f"unknown loss {loss!r}; choose one of {LOSSES}")
+    if not isinstance(obs_k, CentreObservations):
+        raise ValueError(f"obs_k must be a CentreObservations, got {type(obs_k).__name__}")
+    if not isinstance(detector, DetectorSpec):
+        raise ValueError(f"detector must be a DetectorSpec, got {type(detector).__name__}")
+    for name, v in (("srd_reported_k_m", srd_reported_k_m), ("srd_reported_1_m", srd_reported_1_m)):
+        if np.ndim(v) != 0 or not np.isfinite(float(v)) or float(v) <= 0:
+            raise ValueError(f"{name} must be a positive finite scalar, got {v!r}")
+    srd_k, srd_1 = float(srd_reported_k_m), float(srd_reported_1_m)
+    static_res = None
+    if isinstance(static, StaticResult):
+        if not static.success or static.geometry is None:
+            raise ValueError(f"the static solution did not succeed: {static.message}")
+        static_res = static
+        geom = static.geometry
+        terms, term_params = static.terms, static.term_params
+    elif isinstance(static, DetectorFrameGeometry):
+        geom = static
+        terms = check_terms(terms)
+    else:
+        raise ValueError(f"static must be a StaticResult or DetectorFrameGeometry, got {type(static).__name__}")
+    obs = obs_k
+    if mode == "single":
+        if obs_k.n_obs == 0:
+            obs = obs_k
+        elif view_index is None:
+            obs = obs_k.first_view()
+        else:
+            obs = obs_k.select(obs_k.view_index == int(view_index))
+    obs.check_spheres(len(geom.centres_df_m))
+
+    direction = geom.stage_df_m - geom.source_df_m
+    direction = direction / np.linalg.norm(direction)
+    if x0 is None:
+        start = np.concatenate([(srd_k - srd_1) * direction, np.zeros(3)])
+    else:
+        start = np.asarray(x0, dtype=float)
+        if start.shape != (6,) or not np.all(np.isfinite(start)):
+            raise ValueError(f"x0 must be 6 finite values, got shape {start.shape}")
+
+    n_sph = obs.n_spheres_seen
+    if n_sph < 4:
+        return _failed(obs, mode, start, srd_k, srd_1,
+                       f"too few spheres: {n_sph} distinct spheres observed in {mode} mode, need at least 4")
+    seen = np.unique(obs.sphere_index)
+    pts = geom.centres_df_m[seen] - geom.centres_df_m[seen].mean(axis=0)
+    sv = np.linalg.svd(pts, compute_uv=False)
+    if sv[1] <= 1e-6 * sv[0]:
+        return _failed(obs, mode, start, srd_k, srd_1, "degenerate: the observed spheres are collinear")
+
+    kern = MotionKernel(geom, obs, detector, terms, term_params)
+    sigma = None if obs.sigma_px is None else np.repeat(obs.sigma_px, 2)
+    res = levenberg_marquardt(kern.residuals, kern.residuals_jac, start, sigma=sigma, max_iter=max_iter)
+    nfev, njev, nit = res.nfev, res.njev, res.n_iter
+    if loss != "linear":
+        rw = res.residuals if sigma is None else res.residuals / sigma
+        if f_scale_px is None:
+            f = 2.5 * max(1.4826 * float(np.median(np.abs(rw - np.median(rw)))), 1e-12)
+        else:
+            f = float(f_scale_px) if sigma is None else float(f_scale_px) / float(np.median(obs.sigma_px))
+        res = levenberg_marquardt(kern.residuals, kern.residuals_jac, res.x, sigma=sigma, loss=loss,
+                                  f_scale=f, max_iter=max_iter)
+        nfev, njev, nit = nfev + res.nfev, njev + res.njev, nit + res.n_iter
+    cov = covariance_from_jacobian(res.jac, res.residuals, res.weights, cond_limit=cond_limit)
+    success, message = res.success, res.message
+    robust_px = 1.4826 * float(np.median(np.abs(res.residuals)))
+    if cov.rank_deficient:
+        success = False
+        d = cov.weakest_direction
+        top = np.argsort(-np.abs(d))[:3]
+        message = (f"degenerate: Jacobian condition {cov.condition:.3g} exceeds {cond_limit:.3g}; undetermined "
+                   "combination ~ " + " ".join(f"{d[i]:+.2f}*{MOTION_PARAM_NAMES[i]}" for i in top))
+    elif success and robust_px > max_rms_px:
+        success = False
+        message = f"converged to a poor fit: robust residual scale {robust_px:.3g} px > {max_rms_px} px"
+
+    cov_total = sens = None
+    if include_static_uncertainty and static_res is not None and success:
+        sens = _static_sensitivity(res, cov, static_res, obs, detector)
+        cov_total = cov.covariance + sens @ static_res.covariance @ sens.T
+    return MotionResult(
+        x=res.x, names=MOTION_PARAM_NAMES, units=MOTION_PARAM_UNITS, covariance=cov.covariance,
+        covariance_total=cov_total, correlation=correlation_from_covariance(cov.covariance),
+        normal_inverse=cov.normal_inverse, variance_factor=cov.variance_factor,
+        residuals_px=res.residuals.reshape(-1, 2), rms_px=float(np.sqrt(np.mean(res.residuals ** 2))),
+        cost=res.cost, success=bool(success), status=res.status, message=message, nfev=nfev, njev=njev,
+        n_iter=nit, n_obs=obs.n_obs, n_views=obs.n_views, mode=mode, condition=cov.condition, x0=start,
+        srd_reported_k_m=srd_k, srd_reported_1_m=srd_1, static_sensitivity=sens)
+
+
+def _static_sensitivity(res, cov, static_res: StaticResult, obs, detector):
+    """A = d m / d x_static at the optimum, shape (6, n_static)."""
+    xs = static_res.x
+    sd = static_res.std
+    nfree = len(xs)
+    js = np.empty((len(res.residuals), nfree))
+    for i in range(nfree):
+        h = max(0.1 * sd[i], 1e-12)
+        rr = []
+        for sgn in (1.0, -1.0):
+            xp = xs.copy()
+            xp[i] += sgn * h
+            g = static_to_detector_frame(xp[:13], static_res.centres_of_m)
+            k = MotionKernel(g, obs, detector, static_res.terms, xp[13:])
+            rr.append(k.residuals(res.x))
+        js[:, i] = (rr[0] - rr[1]) / (2 * h)
+    w = res.weights
+    jm = res.jac * w[:, None]
+    return -cov.normal_inverse @ (jm.T @ (js * w[:, None]))
