@@ -488,6 +488,84 @@ def _block_mean(a, os):
     return a.reshape(h, os, w, os).mean(axis=(1, 3))
 
 
+@dataclass(frozen=True)
+class _Scene:
+    """Everything placed for one frame (internal)."""
+
+    truth: FrameTruth
+    src: np.ndarray          # (3,) focal spot in {DF} at time_s
+    centres: np.ndarray      # (N, 3)
+    radii: np.ndarray        # (N,)
+    shift: np.ndarray        # (N, 2) textbook-mode translation of each shadow [m]
+    ell_m: np.ndarray        # (N, 2) physical ellipse centres [m]
+    mu_s: float
+    mu_t: float
+    tube_df: tuple | None
+    k1: float
+
+
+def _place_scene(w, m, a, t, ref, detector, settings) -> _Scene:
+    at = true_rotary_angle(a, settings)
+    tube = ref.tube
+    mu_t = 0.0 if tube is None else (tube.mu_per_m if settings.mu_tube_per_m is None else settings.mu_tube_per_m)
+    extra = None
+    if tube is not None and mu_t > 0:
+        extra = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    geom, centres, extra_df = _object_points_df(w, ref, m, at, extra)
+    truth, cp_m, ell_m = _truth_from_placed(ref, detector, settings, w, m, a, at, t, geom, centres)
+    # textbook mode: evaluate sphere i's exact shadow at X + (ellipse centre - centre projection)
+    shift = np.zeros((ref.n_spheres, 2))
+    if not settings.ellipse_centre_bias:
+        shift[:] = ell_m - cp_m
+    tube_df = None
+    if extra is not None:
+        ax = extra_df[1] - extra_df[0]
+        tube_df = (extra_df[0], ax / np.linalg.norm(ax), tube.height_m / 2.0,
+                   tube.outer_radius_m, tube.inner_radius_m)
+    return _Scene(truth, truth.source_df_m, centres, ref.radii_m, shift, ell_m,
+                  float(settings.mu_sphere_per_m), float(mu_t), tube_df,
+                  float(settings.detector_distortion_k1_per_m2))
+
+
+def _line_integrals(sc: _Scene, xs, ys, members) -> np.ndarray:
+    """sum_j mu_j * chord_j of the rays S -> (xs, ys, 0), spheres ``members`` + tube."""
+    line = np.zeros(np.shape(xs))
+    for j in members:
+        line += sc.mu_s * sphere_chords(sc.src, xs + sc.shift[j, 0], ys + sc.shift[j, 1],
+                                        sc.centres[j], sc.radii[j])
+    if sc.tube_df is not None:
+        line += sc.mu_t * tube_chords(sc.src, xs, ys, sc.tube_df)
+    return line
+
+
+def render_projection_bruteforce(static_w, motion, alpha_rad, ref: ReferenceObject, detector: DetectorSpec,
+                                 settings: RenderSettings | None = None, rng: np.random.Generator | None = None,
+                                 *, time_s: float = 0.0, output: str = "mono16",
+                                 rows_per_chunk: int = 32) -> RenderedFrame:
+    """Reference renderer: every sub-sample of every pixel traced through every sphere.
+
+    Same physics and arguments as :func:`render_projection` (the tube is traced
+    at ``oversample`` everywhere), without the bounding-box shortcut. Slow:
+    meant for tests and benchmarks that check the fast renderer against it.
+    """
+    settings = RenderSettings() if settings is None else settings
+    w, m, a, t = _check_inputs(static_w, motion, alpha_rad, ref, detector, settings, time_s)
+    if output not in ("mono16", "transmission"):
+        raise ValueError(f"output must be 'mono16' or 'transmission', got {output!r}")
+    if settings.poisson and not isinstance(rng, np.random.Generator):
+        raise ValueError("rng (numpy.random.Generator) is required when settings.poisson is True")
+    sc = _place_scene(w, m, a, t, ref, detector, settings)
+    os_ = int(settings.oversample)
+    trans = np.ones((detector.rows, detector.cols), dtype=np.float32)
+    allj = np.arange(ref.n_spheres)
+    for r0 in range(0, detector.rows, rows_per_chunk):
+        r1 = min(r0 + rows_per_chunk, detector.rows) - 1
+        xs, ys = _sample_points(detector, 0, detector.cols - 1, r0, r1, os_, sc.k1)
+        trans[r0:r1 + 1] = _block_mean(np.exp(-_line_integrals(sc, xs, ys, allj)), os_)
+    n_rays = detector.rows * detector.cols * os_ * os_
+    return _finish(trans, sc.truth, settings, rng, output, n_rays)
+
+
 def render_projection(static_w, motion, alpha_rad, ref: ReferenceObject, detector: DetectorSpec,
                       settings: RenderSettings | None = None, rng: np.random.Generator | None = None,
                       *, time_s: float = 0.0, output: str = "mono16") -> RenderedFrame:
@@ -522,32 +600,15 @@ def render_projection(static_w, motion, alpha_rad, ref: ReferenceObject, detecto
     if settings.poisson and not isinstance(rng, np.random.Generator):
         raise ValueError("rng (numpy.random.Generator) is required when settings.poisson is True")
 
-    at = true_rotary_angle(a, settings)
-    tube = ref.tube
-    mu_t = 0.0 if tube is None else (tube.mu_per_m if settings.mu_tube_per_m is None else settings.mu_tube_per_m)
-    extra = None
-    if tube is not None and mu_t > 0:
-        extra = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-    geom, centres, extra_df = _object_points_df(w, ref, m, at, extra)
-    truth, cp_m, ell_m = _truth_from_placed(ref, detector, settings, w, m, a, at, t, geom, centres)
-    src = truth.source_df_m
-    k1 = settings.detector_distortion_k1_per_m2
+    sc = _place_scene(w, m, a, t, ref, detector, settings)
+    truth, ell_m, k1, src = sc.truth, sc.ell_m, sc.k1, sc.src
+    tube, tube_df, mu_t = ref.tube, sc.tube_df, sc.mu_t
     os_ = int(settings.oversample)
-    radii = ref.radii_m
-    mu_s = settings.mu_sphere_per_m
-    # textbook mode: evaluate sphere i's exact shadow at X + (ellipse centre - centre projection)
-    shift = np.zeros((ref.n_spheres, 2))
-    if not settings.ellipse_centre_bias:
-        shift[:] = ell_m - cp_m
 
     trans = np.ones((detector.rows, detector.cols), dtype=np.float32)
     n_rays = 0
-    tube_df = None
-    if extra is not None:
-        a0 = extra_df[0]
-        ax = extra_df[1] - extra_df[0]
-        ax = ax / np.linalg.norm(ax)
-        tube_df = (a0, ax, tube.height_m / 2.0, tube.outer_radius_m, tube.inner_radius_m)
+    if tube_df is not None:
+        a0, ax = tube_df[0], tube_df[1]
         # bounding box of the tube's shadow from the 8 corners of its box
         u = np.cross(ax, [1.0, 0.0, 0.0])
         if np.linalg.norm(u) < 1e-6:
@@ -555,8 +616,8 @@ def render_projection(static_w, motion, alpha_rad, ref: ReferenceObject, detecto
         u /= np.linalg.norm(u)
         v = np.cross(ax, u)
         ro, hh = tube.outer_radius_m, tube.height_m / 2.0
-        corners = np.array([a0 + sa * hh * ax + sb * ro * u + sc * ro * v
-                            for sa in (-1, 1) for sb in (-1, 1) for sc in (-1, 1)])
+        corners = np.array([a0 + sa * hh * ax + sb * ro * u + sc_ * ro * v
+                            for sa in (-1, 1) for sb in (-1, 1) for sc_ in (-1, 1)])
         pc = project_df(src, corners, DetectorSpec(1, 1, 1.0))
         pc = distort(np.stack([pc[:, 0], -pc[:, 1]], axis=1), k1)
         cc, rr = detector.pixels_from_metric(pc[:, 0], pc[:, 1])
@@ -567,7 +628,7 @@ def render_projection(static_w, motion, alpha_rad, ref: ReferenceObject, detecto
         if c0 <= c1 and r0 <= r1:
             tos = int(settings.tube_oversample)
             xs, ys = _sample_points(detector, c0, c1, r0, r1, tos, k1)
-            tt = np.exp(-mu_t * tube_chords(src, xs, ys, tube_df))
+            tt = np.exp(-_line_integrals(sc, xs, ys, []))
             n_rays += tt.size
             trans[r0:r1 + 1, c0:c1 + 1] = _block_mean(tt, tos) if tos > 1 else tt
 
@@ -589,14 +650,15 @@ def render_projection(static_w, motion, alpha_rad, ref: ReferenceObject, detecto
         r0, r1 = max(b[i, 2], 0), min(b[i, 3], detector.rows - 1)
         members = np.nonzero((b[:, 0] <= c1) & (c0 <= b[:, 1]) & (b[:, 2] <= r1) & (r0 <= b[:, 3]))[0]
         xs, ys = _sample_points(detector, c0, c1, r0, r1, os_, k1)
-        line = np.zeros(xs.shape)
-        for j in members:
-            line += mu_s * sphere_chords(src, xs + shift[j, 0], ys + shift[j, 1], centres[j], radii[j])
-        if tube_df is not None:
-            line += mu_t * tube_chords(src, xs, ys, tube_df)
+        line = _line_integrals(sc, xs, ys, members)
         n_rays += line.size
         trans[r0:r1 + 1, c0:c1 + 1] = _block_mean(np.exp(-line), os_)
 
+    return _finish(trans, truth, settings, rng, output, n_rays)
+
+
+def _finish(trans, truth, settings, rng, output, n_rays):
+    """Blur, noise and output conversion of a transmission image."""
     if settings.blur_sigma_px > 0:
         trans = cv2.GaussianBlur(trans, (0, 0), settings.blur_sigma_px,
                                  borderType=cv2.BORDER_REPLICATE)
