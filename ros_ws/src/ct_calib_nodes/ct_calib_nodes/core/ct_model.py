@@ -175,6 +175,8 @@ def static_predict(x, obs: CentreObservations, centres_of_m, detector: DetectorS
     q = len(idx)
     jx = np.empty((n, q))
     jy = np.empty((n, q))
+    jx[13:] = 0.0                                          # term columns not set below stay zero
+    jy[13:] = 0.0
     rd = rdet.T                                            # rows: u, v, n axes in {SRF}
     k = h[2] * inv
     # d(x, y) / d p: mx[j] = dx/dp_j, my[j] = dy/dp_j, each (Q,)

@@ -1,0 +1,113 @@
+"""Per-position error motions (section 3.3) and the error map against the scenario truth."""
+
+import json
+
+import numpy as np
+import pytest
+
+from ct_calib_nodes.core.error_map import error_map
+from ct_calib_nodes.core.error_motion import solve_error_motion
+from ct_calib_nodes.core.simulate_obs import simulate_observations
+
+from conftest import SIGMA_PX
+
+# Same argument as the static tests: estimates ~ Normal(truth, cov) in the
+# linear regime; 4.5 sd per component (6 components x 19 positions x 2 modes:
+# family-wise false-failure probability < 2e-3).
+K_SIGMA = 4.5
+
+
+@pytest.fixture(scope="module")
+def campaign_solution(campaign, centres, detector, alphas, static_k1):
+    rng = np.random.default_rng(31)
+    multi, single = [], []
+    for k in range(len(campaign.srd_reported_m)):
+        sim = simulate_observations(campaign.static_w, centres, detector, alphas, rng, SIGMA_PX,
+                                    motion=campaign.motions[k])
+        args = (sim.obs, static_k1, detector, campaign.srd_reported_m[k], campaign.srd_reported_m[0])
+        multi.append(solve_error_motion(*args, mode="multi"))
+        single.append(solve_error_motion(*args, mode="single"))
+    return multi, single
+
+
+def test_multi_recovers_motions(campaign_solution, campaign):
+    multi, _ = campaign_solution
+    for k, r in enumerate(multi):
+        assert r.success, (k, r.message)
+        # total covariance: the static geometry's error is part of the error
+        z = (r.x - campaign.motions[k]) / r.std_total
+        assert np.all(np.abs(z) <= K_SIGMA), (k, z)
+        # the residual variance matches the pixel noise (chi-square, 5 sd)
+        dof = 2 * r.n_obs - 6
+        assert abs(r.variance_factor / SIGMA_PX ** 2 - 1) < 5 * np.sqrt(2 / dof)
+    json.dumps(multi[3].to_dict())
+
+
+def test_single_projection_agrees_with_multi(campaign_solution, campaign):
+    multi, single = campaign_solution
+    for k, (m, s) in enumerate(zip(multi, single)):
+        assert s.success, (k, s.message)
+        assert s.n_views == 1 and s.mode == "single"
+        # single uses a subset of multi's data and the same static geometry, so
+        # Var(single - multi) = Var(single) - Var(multi) <= Var(single), conditional.
+        assert np.all(np.abs(s.x - m.x) <= K_SIGMA * s.std), k
+        # and it is honest about being less precise
+        assert np.all(s.std >= m.std)
+        z = (s.x - campaign.motions[k]) / s.std_total
+        assert np.all(np.abs(z) <= K_SIGMA), (k, z)
+
+
+def test_error_map_matches_truth(campaign_solution, campaign, static_k1):
+    multi, single = campaign_solution
+    truth = campaign.error_map()
+    for results in (multi, single):
+        em = error_map(campaign.srd_reported_m, np.array([r.x for r in results]),
+                       np.array([r.covariance for r in results]),
+                       static_sensitivities=np.array([r.static_sensitivity for r in results]),
+                       static_covariance=static_k1.covariance)
+        est, unc = em.as_truth_dict(), em.uncertainty_dict()
+        for key in truth:
+            z = (est[key] - truth[key]) / unc[key]
+            assert np.all(np.abs(z) <= K_SIGMA), (results[0].mode, key, np.round(z, 2))
+        assert np.allclose(em.pitch_arcsec, em.pitch_rad * 206264.80624709636)
+        json.dumps(em.to_dict())
+    # the joint treatment matters: independent positions overstate straightness uncertainty
+    naive = error_map(campaign.srd_reported_m, np.array([r.x for r in multi]),
+                      np.array([r.covariance_total for r in multi]))
+    assert np.median(naive.u_straightness_x_m[1:] / em.u_straightness_x_m[1:]) > 1.0
+
+
+def test_error_map_uncertainty_linear_algebra():
+    """Straightness of a pure line is zero; uncertainties follow (I - H) C (I - H)^T."""
+    srd = 0.364 + 0.02 * np.arange(5)
+    m = np.zeros((5, 6))
+    m[:, 0] = 1e-3 + 2e-3 * (srd - srd[0])
+    m[:, 2] = (srd - srd[0]) + 1e-5
+    cov = np.tile(np.eye(6) * 1e-12, (5, 1, 1))
+    em = error_map(srd, m, cov)
+    assert np.allclose(em.straightness_x_m, 0, atol=1e-15)
+    assert np.allclose(em.positioning_m, 1e-5)
+    a = np.stack([np.ones(5), srd - srd[0]], axis=1)
+    r = np.eye(5) - a @ np.linalg.pinv(a)
+    assert np.allclose(em.u_straightness_x_m, np.sqrt(np.diag(r @ r.T) * 1e-12))
+    assert np.allclose(em.u_positioning_m, 1e-6)
+    with pytest.raises(ValueError, match="motions"):
+        error_map(srd, m[:, :5])
+
+
+def test_single_projection_with_too_few_points(sim_k1, static_k1, detector, campaign):
+    obs = sim_k1.obs.first_view()
+    few = obs.select(np.arange(obs.n_obs) < 3)
+    r = solve_error_motion(few, static_k1, detector, campaign.srd_reported_m[0], campaign.srd_reported_m[0],
+                           mode="single")
+    assert not r.success and "too few spheres" in r.message
+    assert np.all(np.isnan(r.covariance))
+
+
+def test_rejects_failed_static(sim_k1, static_k1, detector, campaign):
+    import dataclasses
+    bad = dataclasses.replace(static_k1, success=False, message="x")
+    with pytest.raises(ValueError, match="static solution"):
+        solve_error_motion(sim_k1.obs, bad, detector, 0.364, 0.364)
+    with pytest.raises(ValueError, match="mode"):
+        solve_error_motion(sim_k1.obs, static_k1, detector, 0.364, 0.364, mode="both")
