@@ -11,8 +11,11 @@ Pipeline (numbers are the defaults of :class:`DetectionSettings`)
 1. Frame checks and conversion to transmission ``T = I / I0`` (float32; the
    photon noise of a 50000-count frame is 4.5e-3 in T, far above float32
    resolution). Bad frames -> :class:`FrameError` with a ``reason``.
-2. Segmentation: global open-beam level ``b`` = median of a 1/64 subsample;
-   pixels with ``T < b * (1 - 0.10)`` are shadow. At 50000 counts the noise is
+2. Background: the frame is divided by a vertical morphological closing of
+   itself (see ``DetectionSettings.vertical_background``), which keeps the
+   carbon-fibre tube's dark tangential bands and removes the spheres, so the
+   normalised open-beam level is b ~ 1. Segmentation: pixels with
+   ``T < b * (1 - 0.10)`` are shadow. At 50000 counts the noise is
    about 0.0045 b, so the threshold sits ~22 sigma below the background and
    noise never makes a blob. 8-connected components with OpenCV.
 3. Candidate screening, each refusal recorded with a reason code:
@@ -40,8 +43,11 @@ Pipeline (numbers are the defaults of :class:`DetectionSettings`)
    algebraic fitters' bias is O(sigma^2 / R) ~ 1e-4 px and all four agree to
    well under 0.005 px, so the default is ``cv2.fitEllipse`` (fastest; the
    geometric refinement costs ~10x more and buys nothing measurable).
-6. Centre uncertainty: ``sigma_edge^2 (sum_i n_i n_i^T)^-1`` with ``n_i`` the
-   edge normals and ``sigma_edge`` the fit RMS (degrees-of-freedom corrected).
+6. Centre uncertainty: ``f sigma_edge^2 (sum_i n_i n_i^T)^-1`` with ``n_i`` the
+   edge normals, ``sigma_edge`` the fit RMS (degrees-of-freedom corrected) and
+   ``f = max(1, n / (pi r))`` for the correlation of neighbouring rays, which
+   sample shared pixels. It covers the photon noise only; the measured spread
+   on rendered frames is still ~1.3x larger (doc/ct_detect.md).
 7. Optional Deng / Clackdoyle correction from the ellipse centre to the
    projection of the sphere centre, given the nominal source-to-detector
    distance in pixels and the principal point (detector centre by default).
@@ -750,7 +756,10 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
             rms[c] = np.sqrt(np.mean(d ** 2))
             sxx, sxy, syy = np.dot(nx, nx), np.dot(nx, ny), np.dot(ny, ny)
             det_ = sxx * syy - sxy * sxy
-            cov[c] = (s2 / det_) * np.array([[syy, -sxy], [-sxy, sxx]]) if det_ > 0 else np.nan
+            # neighbouring rays share pixels: about one independent edge sample
+            # per 2 px of perimeter (pi r), so inflate by n / (pi r) when larger
+            infl = max(1.0, len(pts) / (np.pi * np.sqrt(p[2] * p[3])))
+            cov[c] = (infl * s2 / det_) * np.array([[syy, -sxy], [-sxy, sxx]]) if det_ > 0 else np.nan
         centre = np.where(ok[:, None], fits[:, :2], centre)
         radius = np.where(ok, np.sqrt(np.abs(fits[:, 2] * fits[:, 3])), radius)
 

@@ -1,0 +1,543 @@
+"""Sphere identity: which detected shadow belongs to which calibrated sphere.
+
+Uses only what a recording carries: the detected centres of each frame, the
+rotary angle alpha, the instrument's nominal geometry (reported SRD, stated
+SDD, detector size and pitch) and the reference object's calibrated centres
+and diameters; optionally a solved geometry from the solver.
+
+Method
+------
+``SphereIdentifier.initialise`` places the object on the NOMINAL instrument
+(source, axis at the reported SRD, detector perpendicular at the stated SDD,
+centred) and searches its pose:
+
+1. coarse: rho_Y over 360 deg in 2-deg steps, the object upright
+   (rho_X = rho_Z = 0), its origin on the axis, a lateral offset and height
+   that match the mean detected position, plus a height grid of +-4 mm in
+   1 mm steps; each candidate is scored by a truncated nearest-neighbour cost
+   over all initial frames (``sum min(d, gate)^2``), robust to missed and
+   spurious detections;
+2. fine, from each of the 6 best distinct coarse poses: alternate gated,
+   mutually unique nearest-neighbour matching and a least-squares fit of
+   x_D, eta, x_P, y_P, z_P, rho_X, rho_Y, rho_Z (z_R, z_D, theta, phi stay
+   nominal, y_D is absorbed by y_P) over the matched points, with a
+   shrinking gate;
+3. decision: the refined pose that leaves the fewest detections unmatched and
+   the fewest visible, isolated predicted spheres undetected wins, and it
+   must beat the runner-up by ``min_margin``. This matters: a helix is
+   nearly invariant under a screw motion, and the relabelling i -> i + 1
+   fits every sphere but the two ends to a fraction of a pixel; only the
+   end spheres tell the hypotheses apart. The object must be upright
+   (sphere 1 at the bottom as in its calibration frame); helix49 is also
+   exactly symmetric under turning it upside down (i -> 50 - i), which no
+   image can resolve.
+
+``assign`` then predicts every sphere at the frame's alpha and assigns each
+detection to its nearest prediction if (a) it is within ``gate_px``, (b) no
+other prediction lies within two predicted shadow radii (+ margin) of the
+detection (two spheres in one blob: ``ambiguous_identity``), and (c) no other
+detection claims the same sphere (``ambiguous_identity``). Otherwise the id
+is -1 with a reason. A sphere id is never used twice in one frame.
+
+Before the tight assignment a loose first pass (3x gate) estimates a 2-D
+shift and scale about the detector centre from the matched set (median
+based), which absorbs slow drifts and, at a new stage position, the error of
+predicting with the nominal stage travel.
+
+For stage positions k > 1 either call ``initialise`` again with the new
+reported SRD (the pose search does not need the k = 1 result), or hand the
+solved geometry over with ``update_geometry`` (static parameters at k = 1
+plus the motion of position k, or the nominal travel only).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from .geometry import (
+    DetectorSpec,
+    forward_df,
+    forward_srf,
+    sphere_centres_df,
+    static_to_detector_frame,
+)
+
+__all__ = ["IdentifySettings", "InitialisationResult", "Assignment", "SphereIdentifier",
+           "ASSIGN_REASONS"]
+
+ASSIGN_REASONS = ("ok", "unmatched", "ambiguous_identity", "not_initialised")
+
+# indices into the 13 static parameters (geometry.py order)
+_FREE = np.array([1, 6, 7, 8, 9, 10, 11, 12])   # x_D, eta, x_P, y_P, z_P, rho_X, rho_Y, rho_Z
+
+
+@dataclass(frozen=True)
+class IdentifySettings:
+    """Tuning of :class:`SphereIdentifier`.
+
+    Attributes
+    ----------
+    gate_px : float or None
+        Largest accepted distance detection -> prediction [px]; None: 0.35 x
+        the smallest predicted shadow radius (about 3.5 px at SRD 364 mm,
+        1.9 px at 724 mm) but at least 1.5 px.
+    separation_margin_px : float
+        A detection with a second prediction closer than two predicted shadow
+        radii plus this margin is ``ambiguous_identity``.
+    coarse_step_deg : float
+        rho_Y step of the coarse pose search.
+    coarse_gate_px : float or None
+        Truncation of the coarse score; None: one predicted shadow diameter.
+    height_search_m, height_step_m : float
+        Object-height grid of the coarse search around the height that
+        matches the mean detected row [m]. A helix is (nearly) invariant
+        under a screw motion (one sphere step up and one azimuth step round),
+        so the poses that relabel i -> i +- 1 fit all but the end spheres:
+        the grid makes sure these hypotheses are started and compared.
+    n_starts : int
+        Distinct coarse minima refined and compared.
+    min_margin : int
+        The best hypothesis must leave at least this many fewer detections
+        or visible isolated spheres unexplained than the runner-up, else the
+        initialisation fails instead of guessing.
+    """
+
+    gate_px: float | None = None
+    separation_margin_px: float = 2.0
+    coarse_step_deg: float = 2.0
+    coarse_gate_px: float | None = None
+    height_search_m: float = 4e-3
+    height_step_m: float = 1e-3
+    n_starts: int = 6
+    min_margin: int = 2
+
+
+@dataclass(frozen=True)
+class InitialisationResult:
+    """Outcome of the pose search.
+
+    Attributes
+    ----------
+    estimate : ndarray of shape (13,)
+        Static parameters of the identification model (nominal instrument with
+        the fitted object pose; NOT a calibration result).
+    residuals : ndarray of shape (2 Q,)
+        Reprojection residuals of the Q matched detections [px].
+    rms_px : float
+    n_matched, n_detections : int
+    cost : float
+        0.5 sum residuals^2 [px^2].
+    success : bool
+        rms below the gate and at least 60 % of the detections matched.
+    message : str
+    nfev : int
+    covariance : None
+        Not computed (identification model only).
+    """
+
+    estimate: np.ndarray
+    residuals: np.ndarray
+    rms_px: float
+    n_matched: int
+    n_detections: int
+    cost: float
+    success: bool
+    message: str
+    nfev: int
+    covariance: None = None
+
+
+@dataclass(frozen=True)
+class Assignment:
+    """Identity of the M detections of one frame.
+
+    Attributes
+    ----------
+    ids : ndarray of shape (M,), int
+        Sphere id, -1 where rejected.
+    reasons : tuple of str, length M
+        ``ok``, ``unmatched``, ``ambiguous_identity`` or ``not_initialised``.
+    residual_px : ndarray of shape (M,)
+        Distance to the assigned (or nearest) prediction [px].
+    predicted_px : ndarray of shape (N, 2)
+        Predicted centres of all N spheres (after the shift/scale update).
+    """
+
+    ids: np.ndarray
+    reasons: tuple
+    residual_px: np.ndarray
+    predicted_px: np.ndarray
+
+    @property
+    def n_assigned(self) -> int:
+        return int(np.count_nonzero(self.ids >= 0))
+
+
+def _check_centres(c, name="centres_px"):
+    a = np.asarray(c, dtype=np.float64)
+    if a.ndim != 2 or a.shape[1] != 2:
+        raise ValueError(f"{name} must have shape (M, 2), got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains NaN or inf")
+    return a
+
+
+class SphereIdentifier:
+    """Frame-by-frame sphere identity for one reference object on one instrument.
+
+    Parameters
+    ----------
+    ids : array_like of shape (N,)
+        Sphere ids of the reference object.
+    centres_of_m : array_like of shape (N, 3)
+        Calibrated centres in {OF} [m].
+    diameters_m : array_like of shape (N,)
+        Calibrated diameters [m].
+    detector : DetectorSpec
+        From ct_instrument.yaml.
+    sdd_m : float
+        Source-to-detector distance as the instrument states it [m].
+    settings : IdentifySettings, optional
+    """
+
+    def __init__(self, ids, centres_of_m, diameters_m, detector: DetectorSpec, sdd_m: float,
+                 settings: IdentifySettings | None = None):
+        self.ids = np.asarray(ids).astype(np.int64).reshape(-1)
+        c = np.asarray(centres_of_m, dtype=np.float64)
+        n = self.ids.size
+        if c.shape != (n, 3) or not np.all(np.isfinite(c)):
+            raise ValueError(f"centres_of_m must be finite with shape ({n}, 3), got {c.shape}")
+        d = np.asarray(diameters_m, dtype=np.float64)
+        if d.ndim == 0:
+            d = np.full(n, float(d))
+        if d.shape != (n,) or not np.all(np.isfinite(d)) or np.any(d <= 0):
+            raise ValueError(f"diameters_m must be positive with shape ({n},)")
+        if np.unique(self.ids).size != n:
+            raise ValueError("ids must be unique")
+        if not isinstance(detector, DetectorSpec):
+            raise ValueError("detector must be a DetectorSpec")
+        if not (np.isfinite(sdd_m) and sdd_m > 0):
+            raise ValueError(f"sdd_m must be positive, got {sdd_m}")
+        self.centres_of_m = c
+        self.radii_m = d / 2.0
+        self.detector = detector
+        self.sdd_m = float(sdd_m)
+        self.settings = settings if settings is not None else IdentifySettings()
+        self._w = None            # static params of the prediction model (SRF)
+        self._geom = None         # or a DetectorFrameGeometry ...
+        self._motion = None       # ... plus a motion (6,)
+        self._shift = np.zeros(2)
+        self._scale = 1.0
+
+    # ------------------------------------------------------------------ model
+    @property
+    def initialised(self) -> bool:
+        return self._w is not None or self._geom is not None
+
+    def _nominal_w(self, srd_m: float) -> np.ndarray:
+        w = np.zeros(13)
+        w[0] = srd_m
+        w[3] = self.sdd_m
+        w[9] = srd_m
+        return w
+
+    def _raw_predict(self, alpha_rad, w=None):
+        """Predicted centres (A, N, 2) and shadow radii (A, N) [px] at angles (A,)."""
+        a = np.atleast_1d(np.asarray(alpha_rad, dtype=np.float64))
+        if w is not None or self._geom is None:
+            w = self._w if w is None else w
+            pts = forward_srf(w, self.centres_of_m, a, self.detector)
+            geom = static_to_detector_frame(w, self.centres_of_m)
+            c_df = sphere_centres_df(geom, np.zeros(6), a)
+        else:
+            geom, motion = self._geom, self._motion
+            pts = forward_df(geom, motion, a, self.detector)
+            c_df = sphere_centres_df(geom, motion, a)
+        dist = np.linalg.norm(c_df - geom.source_df_m, axis=-1)
+        r_px = self.radii_m * (-geom.source_df_m[2]) / dist / self.detector.pixel_pitch_m
+        return pts, r_px
+
+    def predict(self, alpha_rad: float):
+        """Predicted centres (N, 2) [px] of all spheres at one angle (with the shift/scale update)."""
+        if not self.initialised:
+            raise ValueError("SphereIdentifier is not initialised")
+        pts, _ = self._raw_predict([alpha_rad])
+        return self._apply_similarity(pts[0])
+
+    def _apply_similarity(self, pts):
+        c0 = np.array(self.detector.centre_px)
+        return c0 + self._scale * (pts - c0) + self._shift
+
+    def _in_view(self, pts, r_px):
+        return ((pts[..., 0] >= -r_px) & (pts[..., 0] <= self.detector.cols - 1 + r_px)
+                & (pts[..., 1] >= -r_px) & (pts[..., 1] <= self.detector.rows - 1 + r_px))
+
+    # ------------------------------------------------------------------ initialise
+    def initialise(self, frames_centres_px, alphas_rad, srd_m: float) -> InitialisationResult:
+        """Find the object pose on the nominal instrument from a few frames.
+
+        Parameters
+        ----------
+        frames_centres_px : sequence of ndarray of shape (M_j, 2)
+            Detected centres of J frames (J >= 1; 4-8 frames spread over the
+            rotation work best).
+        alphas_rad : array_like of shape (J,)
+            Rotary angles of those frames [rad].
+        srd_m : float
+            Reported source-to-rotation-axis distance [m].
+
+        Returns
+        -------
+        InitialisationResult
+        """
+        frames = [_check_centres(f, "frames_centres_px[j]") for f in frames_centres_px]
+        alphas = np.asarray(alphas_rad, dtype=np.float64).reshape(-1)
+        if len(frames) == 0 or alphas.size != len(frames) or not np.all(np.isfinite(alphas)):
+            raise ValueError("need one finite alpha per frame and at least one frame")
+        if not (np.isfinite(srd_m) and 0 < srd_m < self.sdd_m):
+            raise ValueError(f"srd_m must be in (0, sdd), got {srd_m}")
+        self._geom, self._motion = None, None
+        self._shift, self._scale = np.zeros(2), 1.0
+        n_det = sum(len(f) for f in frames)
+        if n_det < 4:
+            self._w = None
+            return InitialisationResult(np.full(13, np.nan), np.zeros(0), np.nan, 0, n_det, np.nan, False,
+                                        "fewer than 4 detections", 0)
+        mag = self.sdd_m / srd_m
+        pitch = self.detector.pixel_pitch_m
+        r_nom = float(np.median(self.radii_m)) * mag / pitch
+        coarse_gate = self.settings.coarse_gate_px or 2.0 * r_nom
+        allc = np.vstack(frames)
+        mean_det = allc.mean(axis=0)
+        # coarse grid over rho_Y and object height; keep the best few distinct poses
+        cands = []
+        dy_grid = np.arange(-self.settings.height_search_m, self.settings.height_search_m + 1e-12,
+                            self.settings.height_step_m)
+        for rho_y in np.deg2rad(np.arange(0.0, 360.0, self.settings.coarse_step_deg)):
+            w0 = self._nominal_w(srd_m)
+            w0[11] = rho_y
+            pred, r_px = self._raw_predict(alphas, w0)
+            vis = self._in_view(pred, r_px)
+            if not np.any(vis):
+                continue
+            mp = np.array([pred[..., 0][vis].mean(), pred[..., 1][vis].mean()])
+            dcol, drow = mean_det - mp
+            for dy in dy_grid:
+                w = w0.copy()
+                w[1] -= dcol * pitch                # detector offset: a uniform column shift
+                w[8] += -drow * pitch / mag + dy    # object height
+                pred, _ = self._raw_predict(alphas, w)
+                cands.append((self._score(frames, pred, coarse_gate), w))
+        cands.sort(key=lambda t: t[0])
+        starts = []
+        for sc, w in cands:
+            if all(abs(np.angle(np.exp(1j * (w[11] - v[11])))) > np.deg2rad(5.0) or abs(w[8] - v[8]) > 1e-3
+                   for v in starts):
+                starts.append(w)
+            if len(starts) >= self.settings.n_starts:
+                break
+        nfev = 0
+        results = []
+        for w in starts:
+            w, res, n_match, nf = self._refine(frames, alphas, w, coarse_gate)
+            nfev += nf
+            gate = self._gate(w, alphas)
+            pred, r_px = self._raw_predict(alphas, w)
+            # the same labelling reached from another start is not a rival hypothesis
+            if any(np.max(np.abs(pred - r[6])) < gate for r in results):
+                continue
+            # final score: unmatched detections and unexplained visible, isolated predictions
+            n_unmatched = 0
+            n_missing = 0
+            for j, f in enumerate(frames):
+                idx, _, _ = self._match(f, pred[j], r_px[j], gate)
+                n_unmatched += int(np.count_nonzero(idx < 0))
+                vis = self._in_view(pred[j], -r_px[j])
+                dd = np.linalg.norm(pred[j][:, None] - pred[j][None], axis=2)
+                np.fill_diagonal(dd, np.inf)
+                iso = vis & (dd.min(axis=1) > 2.0 * r_px[j] + self.settings.separation_margin_px)
+                if len(f):
+                    near = np.linalg.norm(pred[j][:, None] - f[None], axis=2).min(axis=1)
+                else:
+                    near = np.full(len(pred[j]), np.inf)
+                n_missing += int(np.count_nonzero(iso & (near > gate)))
+            results.append((n_unmatched + n_missing, float(np.mean(res ** 2)) if res.size else np.inf,
+                            w, res, n_match, gate, pred))
+        results.sort(key=lambda t: (t[0], t[1]))
+        bad, _, w, res, n_match, gate_final, _ = results[0]
+        margin = results[1][0] - bad if len(results) > 1 else np.inf
+        self._w = w
+        rms = float(np.sqrt(np.mean(res ** 2) * 2)) if res.size else np.nan
+        ok = bool(res.size and rms < gate_final and n_match >= 0.6 * n_det
+                  and margin >= self.settings.min_margin)
+        msg = (f"{n_match} of {n_det} detections matched, rms {rms:.3f} px, {bad} unexplained "
+               f"(next pose hypothesis: {bad + margin})")
+        msg = ("pose found: " if ok else "pose search failed: ") + msg
+        if not ok:
+            self._w = None
+        return InitialisationResult(w, res, rms, n_match, n_det, 0.5 * float(np.sum(res ** 2)), ok, msg, nfev)
+
+    @staticmethod
+    def _score(frames, pred, gate):
+        score = 0.0
+        for j, f in enumerate(frames):
+            if len(f):
+                d = np.linalg.norm(f[:, None, :] - pred[j][None, :, :], axis=2).min(axis=1)
+                score += float(np.sum(np.minimum(d, gate) ** 2))
+        return score
+
+    def _refine(self, frames, alphas, w, coarse_gate):
+        nfev = 0
+        res = np.zeros(0)
+        n_match = 0
+        gate_final = self._gate(w, alphas)
+        for gate in (coarse_gate, 0.5 * coarse_gate, gate_final, gate_final):
+            fj, fi, sn = self._match_frames(frames, alphas, w, gate)
+            if len(fj) < 6:
+                break
+            obs = np.vstack([frames[j][i] for j, i in zip(fj, fi)])
+
+            def fun(x, fj=fj, sn=sn, obs=obs, w=w):
+                ww = w.copy()
+                ww[_FREE] = x
+                p = forward_srf(ww, self.centres_of_m, alphas, self.detector)
+                return (p[fj, sn] - obs).ravel()
+
+            scale = np.array([1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-2, 1e-2, 1e-2])
+            sol = least_squares(fun, w[_FREE], x_scale=scale, method="lm", max_nfev=200)
+            nfev += int(sol.nfev)
+            w = w.copy()
+            w[_FREE] = sol.x
+            res = sol.fun
+            n_match = len(fj)
+        return w, res, n_match, nfev
+
+    def _gate(self, w=None, alphas=(0.0,)):
+        if self.settings.gate_px is not None:
+            return float(self.settings.gate_px)
+        _, r_px = self._raw_predict(np.atleast_1d(alphas), w)
+        return max(1.5, 0.35 * float(np.min(r_px)))
+
+    def _match_frames(self, frames, alphas, w, gate):
+        pred, r_px = self._raw_predict(alphas, w)
+        fj, fi, sn = [], [], []
+        for j, f in enumerate(frames):
+            idx, _, _ = self._match(f, pred[j], r_px[j], gate)
+            for i, s in enumerate(idx):
+                if s >= 0:
+                    fj.append(j)
+                    fi.append(i)
+                    sn.append(s)
+        return np.array(fj, int), np.array(fi, int), np.array(sn, int)
+
+    def _match(self, det, pred, r_px, gate):
+        """Sphere index per detection (-1 rejected), reasons, distances."""
+        m = len(det)
+        out = np.full(m, -1, int)
+        reasons = ["unmatched"] * m
+        if m == 0:
+            return out, tuple(reasons), np.zeros(0)
+        d = np.linalg.norm(det[:, None, :] - pred[None, :, :], axis=2)     # (M, N)
+        order = np.argsort(d, axis=1)
+        near = order[:, 0]
+        d1 = d[np.arange(m), near]
+        d2 = d[np.arange(m), order[:, 1]] if pred.shape[0] > 1 else np.full(m, np.inf)
+        sep = 2.0 * r_px[near] + self.settings.separation_margin_px
+        for i in range(m):
+            if d1[i] > gate:
+                continue
+            if d2[i] < sep[i]:
+                reasons[i] = "ambiguous_identity"
+                continue
+            out[i] = near[i]
+            reasons[i] = "ok"
+        # mutual uniqueness: a sphere claimed twice -> all claimants rejected
+        vals, counts = np.unique(out[out >= 0], return_counts=True)
+        for v in vals[counts > 1]:
+            for i in np.nonzero(out == v)[0]:
+                out[i] = -1
+                reasons[i] = "ambiguous_identity"
+        return out, tuple(reasons), d1
+
+    # ------------------------------------------------------------------ per frame
+    def assign(self, centres_px, alpha_rad: float) -> Assignment:
+        """Assign sphere ids to the detections of one frame.
+
+        Parameters
+        ----------
+        centres_px : array_like of shape (M, 2)
+            Detected centres (col, row) [px].
+        alpha_rad : float
+            Rotary angle of the frame [rad].
+
+        Returns
+        -------
+        Assignment
+        """
+        det = _check_centres(centres_px)
+        m = len(det)
+        if not self.initialised:
+            return Assignment(np.full(m, -1, np.int64), ("not_initialised",) * m, np.full(m, np.nan),
+                              np.zeros((0, 2)))
+        if not np.isfinite(alpha_rad):
+            raise ValueError("alpha_rad must be finite")
+        raw, r_px = self._raw_predict([float(alpha_rad)])
+        raw, r_px = raw[0], r_px[0] * self._scale
+        gate = self._gate(None, [float(alpha_rad)])
+        # loose pass: 2-D shift and scale about the detector centre (median based)
+        pred = self._apply_similarity(raw)
+        idx, _, _ = self._match(det, pred, r_px, 3.0 * gate)
+        use = idx >= 0
+        if np.count_nonzero(use) >= 6:
+            c0 = np.array(self.detector.centre_px)
+            p, q = pred[idx[use]] - c0, det[use] - c0
+            rp = np.linalg.norm(p, axis=1)
+            good = rp > 20.0
+            s = float(np.median(np.sum(q[good] * p[good], axis=1) / rp[good] ** 2)) if good.sum() >= 3 else 1.0
+            shift = np.median(q - s * p, axis=0)
+            pred = c0 + s * (pred - c0) + shift
+        idx, reasons, dist = self._match(det, pred, r_px, gate)
+        ids = np.where(idx >= 0, self.ids[np.clip(idx, 0, None)], -1)
+        return Assignment(ids.astype(np.int64), reasons, dist, pred)
+
+    # ------------------------------------------------------------------ solver hand-over
+    def update_geometry(self, static_w=None, *, motion=None, travel_m: float | None = None):
+        """Predict from a solved geometry instead of the identification pose.
+
+        Parameters
+        ----------
+        static_w : array_like of shape (13,), optional
+            Solved static parameters at k = 1. None keeps the current model.
+        motion : array_like of shape (6,), optional
+            Error motion of the current stage position relative to k = 1
+            (solved, or from a previous position).
+        travel_m : float, optional
+            Nominal stage travel from k = 1 (reported SRD change) [m]; used
+            when ``motion`` is None: the stage point moves along {SRF} Z.
+        """
+        if static_w is not None:
+            w = np.asarray(static_w, dtype=np.float64)
+            if w.shape != (13,) or not np.all(np.isfinite(w)):
+                raise ValueError("static_w must be 13 finite values")
+            self._w = w
+        if self._w is None:
+            raise ValueError("no geometry: give static_w or call initialise first")
+        self._shift, self._scale = np.zeros(2), 1.0
+        if motion is None and travel_m is None:
+            self._geom, self._motion = None, None
+            return
+        geom = static_to_detector_frame(self._w, self.centres_of_m)
+        if motion is not None:
+            mo = np.asarray(motion, dtype=np.float64)
+            if mo.shape != (6,) or not np.all(np.isfinite(mo)):
+                raise ValueError("motion must be 6 finite values")
+        else:
+            # travel along {SRF} Z expressed in {DF}
+            z_df = (geom.stage_df_m - geom.source_df_m)
+            z_df = z_df / np.linalg.norm(z_df)
+            mo = np.zeros(6)
+            mo[:3] = float(travel_m) * z_df
+        self._geom, self._motion = geom, mo
