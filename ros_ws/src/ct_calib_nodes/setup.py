@@ -22,6 +22,11 @@ setup(
     entry_points={
         "console_scripts": [
             "mcap_recorder = ct_calib_nodes.nodes.mcap_recorder:main",
+            "ct_projection_sim = ct_calib_nodes.nodes.ct_projection_sim:main",
+            "ct_sphere_detector = ct_calib_nodes.nodes.ct_sphere_detector:main",
+            "ct_geometry_solver = ct_calib_nodes.nodes.ct_geometry_solver:main",
+            "ct_error_motion = ct_calib_nodes.nodes.ct_error_motion:main",
+            "ct_demo = ct_calib_nodes.nodes.ct_demo:main",
         ],
     },
 )

@@ -1,0 +1,327 @@
+"""The CT calibration pipeline as plain functions and small state holders.
+
+Three front doors share this module: the live nodes (detector, geometry
+solver, error-motion node), the offline replay of a recording, and tests.
+Identical inputs give identical numbers in all three.
+
+- ``CampaignAccumulator`` groups sphere-centre observations into stage
+  positions: a new position starts whenever the instrument-reported SRD
+  changes (by more than ``srd_tolerance_m``).
+- ``solve_campaign_static`` / ``solve_campaign_position`` run the static and
+  error-motion solvers on an accumulated position.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .error_motion import MotionResult, solve_error_motion
+from .geometry import DetectorSpec
+from .observations import CentreObservations
+from .static_solver import StaticResult, solve_static
+
+
+@dataclass
+class PositionData:
+    """Observations of one stage position, frame by frame."""
+
+    srd_reported_m: float
+    stamps_ns: list = field(default_factory=list)
+    alphas_rad: list = field(default_factory=list)
+    uv_px: list = field(default_factory=list)           # per frame (Q_j, 2)
+    sphere_index: list = field(default_factory=list)    # per frame (Q_j,)
+    sigma_px: list = field(default_factory=list)        # per frame (Q_j,)
+    n_rejected: int = 0
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.stamps_ns)
+
+    @property
+    def n_obs(self) -> int:
+        return int(sum(len(s) for s in self.sphere_index))
+
+    def observations(self) -> CentreObservations:
+        """All frames of this position as one CentreObservations, in stamp order."""
+        order = np.argsort(np.asarray(self.stamps_ns, dtype=np.int64), kind="stable")
+        pick = lambda seq: [seq[i] for i in order]  # noqa: E731
+        sig = pick(self.sigma_px)
+        use_sigma = all(len(s) == 0 or np.all(np.asarray(s) > 0) for s in sig)
+        return CentreObservations.from_views(
+            pick(self.uv_px), pick(self.sphere_index), np.asarray(self.alphas_rad)[order],
+            stamp_ns_per_view=np.asarray(self.stamps_ns, dtype=np.int64)[order],
+            sigma_px_per_view=sig if use_sigma else None)
+
+
+class CampaignAccumulator:
+    """Sphere-centre observations of a campaign, grouped by stage position.
+
+    Parameters
+    ----------
+    srd_tolerance_m : float
+        Reported-SRD change that starts a new stage position [m].
+    """
+
+    def __init__(self, srd_tolerance_m: float = 1e-5):
+        self.srd_tolerance_m = float(srd_tolerance_m)
+        self.positions: list[PositionData] = []
+        self._seen_stamps: set = set()
+
+    def position_of(self, srd_reported_m: float) -> int:
+        """Index of the position a reading belongs to (a new one if the SRD moved)."""
+        for k, p in enumerate(self.positions):
+            if abs(p.srd_reported_m - srd_reported_m) <= self.srd_tolerance_m:
+                return k
+        return len(self.positions)
+
+    def add_frame(self, stamp_ns: int, alpha_rad: float, srd_reported_m: float, sphere_index, uv_px,
+                  sigma_px=None, n_rejected: int = 0) -> int:
+        """Add the accepted observations of one frame; returns its position index.
+
+        A frame whose stamp was already added is ignored (returns -1): replays and
+        re-deliveries must not count twice.
+        """
+        stamp_ns = int(stamp_ns)
+        if stamp_ns in self._seen_stamps:
+            return -1
+        if not (np.isfinite(alpha_rad) and np.isfinite(srd_reported_m)):
+            raise ValueError(f"non-finite stage reading alpha={alpha_rad} srd={srd_reported_m}")
+        idx = np.asarray(sphere_index, dtype=np.int64).reshape(-1)
+        uv = np.asarray(uv_px, dtype=float).reshape(-1, 2)
+        if len(idx) != len(uv):
+            raise ValueError(f"{len(idx)} sphere indices but {len(uv)} centres")
+        sig = np.full(len(idx), -1.0) if sigma_px is None else np.asarray(sigma_px, dtype=float).reshape(-1)
+        k = self.position_of(srd_reported_m)
+        if k == len(self.positions):
+            self.positions.append(PositionData(float(srd_reported_m)))
+        p = self.positions[k]
+        p.stamps_ns.append(stamp_ns)
+        p.alphas_rad.append(float(alpha_rad))
+        p.uv_px.append(uv)
+        p.sphere_index.append(idx)
+        p.sigma_px.append(sig)
+        p.n_rejected += int(n_rejected)
+        self._seen_stamps.add(stamp_ns)
+        return k
+
+    @property
+    def srd_reported_m(self) -> np.ndarray:
+        return np.array([p.srd_reported_m for p in self.positions])
+
+
+def solve_campaign_static(acc: CampaignAccumulator, centres_of_m, detector: DetectorSpec,
+                          sdd_reported_m: float, **kwargs) -> StaticResult:
+    """Static geometry from the first stage position of a campaign (section 3.1)."""
+    if not acc.positions:
+        raise ValueError("no observations yet")
+    p = acc.positions[0]
+    return solve_static(p.observations(), centres_of_m, detector, p.srd_reported_m, sdd_reported_m, **kwargs)
+
+
+def solve_campaign_position(acc: CampaignAccumulator, k: int, static: StaticResult, detector: DetectorSpec,
+                            mode: str = "multi", **kwargs) -> MotionResult:
+    """Error motions of stage position k (0-based; k = 0 is the reference) relative to k = 0."""
+    if not 0 <= k < len(acc.positions):
+        raise ValueError(f"stage position {k} not in 0..{len(acc.positions) - 1}")
+    p = acc.positions[k]
+    return solve_error_motion(p.observations(), static, detector, p.srd_reported_m,
+                              acc.positions[0].srd_reported_m, mode=mode, **kwargs)
+
+
+def static_result_from_estimate(w, covariance, centres_of_m, *, names=None, units=None, rms_px=np.nan,
+                                n_obs=0, message="rebuilt from a published estimate") -> StaticResult:
+    """A StaticResult holding a published static estimate (values and covariance).
+
+    Lets a consumer of ``/ct/geometry`` (or of a results file) run the error-motion
+    solver with the static uncertainty propagated, exactly as if it had solved
+    the static geometry itself. Fields that only the original solve knows
+    (residuals, evaluation counts) are empty.
+    """
+    from .geometry import STATIC_PARAM_NAMES, STATIC_PARAM_UNITS, static_to_detector_frame  # noqa: PLC0415
+
+    x = np.asarray(w, dtype=float)
+    cov = np.asarray(covariance, dtype=float) if covariance is not None else np.full((len(x), len(x)), np.nan)
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(sd, sd)
+    centres = np.asarray(centres_of_m, dtype=float)
+    return StaticResult(
+        x=x, names=tuple(names or STATIC_PARAM_NAMES), units=tuple(units or STATIC_PARAM_UNITS),
+        covariance=cov, correlation=corr, normal_inverse=cov, variance_factor=1.0,
+        residuals_px=np.zeros((0, 2)), rms_px=float(rms_px), cost=np.nan, success=True, status=0,
+        message=message, nfev=0, njev=0, n_iter=0, n_obs=int(n_obs), n_views=0, n_spheres=len(centres),
+        condition=np.nan, geometry=static_to_detector_frame(x[:13], centres), x0=x.copy(), loss="linear",
+        f_scale_px=None, terms=(), centres_of_m=centres, weights=None)
+
+
+def campaign_error_map(acc: CampaignAccumulator, motion_results: dict, static: StaticResult):
+    """Error map over the positions solved so far (position 0 = reference, zero motion).
+
+    Parameters
+    ----------
+    motion_results : dict k -> MotionResult (successful ones are used)
+
+    Returns
+    -------
+    (ErrorMap, ks) with ks the position indices included (0 first).
+    """
+    from .error_map import error_map  # noqa: PLC0415
+
+    ks = [0] + sorted(k for k, r in motion_results.items() if k > 0 and r.success)
+    motions = np.zeros((len(ks), 6))
+    covs = np.zeros((len(ks), 6, 6))
+    for i, k in enumerate(ks[1:], start=1):
+        r = motion_results[k]
+        motions[i] = r.x
+        c = r.covariance_total if getattr(r, "covariance_total", None) is not None else r.covariance
+        covs[i] = c
+    srd = np.array([acc.positions[k].srd_reported_m for k in ks])
+    return error_map(srd, motions, covs), ks
+
+
+# ------------------------------------------------------------------------------------------------
+# Frame processing: detection + identity, frame by frame (detector node and offline replay)
+
+REASON_FLAGS = {"overlap": 1, "edge_cut": 2, "not_a_sphere_size": 3, "not_a_sphere_shape": 3,
+                "not_a_sphere_contrast": 3, "fit_failed": 4, "ambiguous_identity": 5, "unmatched": 5,
+                "not_initialised": 5}
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """Observations of one frame, accepted and rejected, with ids.
+
+    ``ids`` is -1 and ``flag`` non-zero (metro_msgs/SphereObservation codes) for
+    rejections; ``reason`` says why in words.
+    """
+
+    stamp_ns: int
+    alpha_rad: float
+    srd_reported_m: float
+    ids: np.ndarray           # (M,)
+    flag: np.ndarray          # (M,) uint8
+    reason: tuple             # (M,)
+    centre_px: np.ndarray     # (M, 2)
+    sigma_px: np.ndarray      # (M,)
+    semi_axes_px: np.ndarray  # (M, 2)
+    angle_rad: np.ndarray     # (M,)
+    fit_rms_px: np.ndarray    # (M,)
+
+    def accepted(self):
+        """(ids, centre_px, sigma_px) of the accepted observations."""
+        ok = self.flag == 0
+        return self.ids[ok], self.centre_px[ok], self.sigma_px[ok]
+
+
+class FrameProcessor:
+    """Sphere detection and identity for a stream of CT frames.
+
+    The identity of the first stage position is initialised from the first
+    ``init_frames`` frames (buffered, then released together); afterwards
+    every frame is assigned as it comes. When the reported SRD changes, the
+    prediction follows the nominal travel; ``set_static`` hands over a solved
+    geometry. Deterministic: the same frames in the same order give the same
+    results, live or offline.
+    """
+
+    def __init__(self, ref, detector: DetectorSpec, sdd_reported_m: float, flat_field_counts: float,
+                 init_frames: int = 6, detection_settings=None, identify_settings=None):
+        from .identify import SphereIdentifier  # noqa: PLC0415
+
+        self.ref = ref
+        self.detector = detector
+        self.sdd = float(sdd_reported_m)
+        self.flat = float(flat_field_counts) if flat_field_counts else None
+        self.init_frames = max(1, int(init_frames))
+        self.detection_settings = detection_settings
+        self.identifier = SphereIdentifier(ref.ids, ref.centres_of_m, ref.diameters_m, detector, self.sdd,
+                                           identify_settings)
+        self._pending = []          # (stamp, alpha, srd, detections) before initialisation
+        self.srd_first = None
+        self.srd_current = None
+        self.static_w = None
+        self.n_frames = 0
+        self.n_bad_frames = 0
+
+    def diameter_range_px(self, srd_m: float):
+        d = self.ref.diameters_m
+        m_hi = self.sdd / max(srd_m - 0.08, 0.01)
+        m_lo = self.sdd / (srd_m + 0.08)
+        return (0.6 * d.min() * m_lo / self.detector.pixel_pitch_m, 1.5 * d.max() * m_hi / self.detector.pixel_pitch_m)
+
+    def detect(self, image, encoding: str, srd_m: float):
+        from .detect import detect_spheres  # noqa: PLC0415
+
+        return detect_spheres(image, encoding=encoding, flat_field_counts=self.flat,
+                              expected_shape=(self.detector.rows, self.detector.cols),
+                              diameter_px_range=self.diameter_range_px(srd_m), settings=self.detection_settings)
+
+    def set_static(self, static_w):
+        """Use a solved static geometry for the predictions from now on."""
+        self.static_w = np.asarray(static_w, dtype=float)
+        self._move_to(self.srd_current if self.srd_current is not None else self.srd_first)
+
+    def _move_to(self, srd_m):
+        if srd_m is None or not self.identifier.initialised:
+            return
+        travel = float(srd_m - self.srd_first)
+        if self.static_w is not None:
+            self.identifier.update_geometry(self.static_w, travel_m=travel)
+        elif abs(travel) > 0:
+            self.identifier.update_geometry(None, travel_m=travel)
+
+    def push(self, stamp_ns: int, image, encoding: str, alpha_rad: float, srd_m: float) -> list:
+        """Process one frame; returns the FrameResults now ready (0, 1, or the buffered batch).
+
+        Raises detect.FrameError for a frame that cannot be used (the caller logs and skips it).
+        """
+        det = self.detect(image, encoding, srd_m)      # may raise FrameError
+        self.n_frames += 1
+        if self.srd_first is None:
+            self.srd_first = self.srd_current = float(srd_m)
+        if abs(srd_m - self.srd_current) > 1e-5:
+            self.srd_current = float(srd_m)
+            self._move_to(self.srd_current)
+        if not self.identifier.initialised:
+            self._pending.append((int(stamp_ns), float(alpha_rad), float(srd_m), det))
+            if len(self._pending) < self.init_frames:
+                return []
+            init = self.identifier.initialise([p[3].centre_px for p in self._pending],
+                                              [p[1] for p in self._pending], self._pending[0][2])
+            if not init.success:
+                # keep the oldest frames out so the next attempt sees a new set
+                self._pending.pop(0)
+                return []
+            out = [self._assign(*p) for p in self._pending]
+            self._pending = []
+            return out
+        return [self._assign(int(stamp_ns), float(alpha_rad), float(srd_m), det)]
+
+    def flush(self) -> list:
+        """Frames still buffered (identity never initialised): returned as all-rejected."""
+        out = [self._assign(*p) for p in self._pending]
+        self._pending = []
+        return out
+
+    def _assign(self, stamp, alpha, srd, det) -> FrameResult:
+        m = len(det.centre_px)
+        a = self.identifier.assign(det.centre_px, alpha) if m else None
+        ids = a.ids if a is not None else np.zeros(0, np.int64)
+        reasons = list(a.reasons) if a is not None else []
+        flag = np.array([0 if r == "ok" else REASON_FLAGS.get(r, 5) for r in reasons], dtype=np.uint8)
+        cov = np.asarray(det.centre_cov_px2).reshape(-1, 2, 2)
+        sigma = np.sqrt(np.maximum(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]), 0.0)) if m else np.zeros(0)
+        rej = det.rejected
+        nr = len(rej.reason)
+        return FrameResult(
+            stamp_ns=stamp, alpha_rad=alpha, srd_reported_m=srd,
+            ids=np.concatenate([ids, np.full(nr, -1)]).astype(np.int64),
+            flag=np.concatenate([flag, [REASON_FLAGS.get(r, 3) for r in rej.reason]]).astype(np.uint8),
+            reason=tuple(["" if r == "ok" else r for r in reasons] + [f"{r}: {d}" for r, d in zip(rej.reason, rej.detail)]),
+            centre_px=np.concatenate([np.asarray(det.centre_px).reshape(-1, 2), np.asarray(rej.centre_px).reshape(-1, 2)]),
+            sigma_px=np.concatenate([sigma, np.full(nr, np.nan)]),
+            semi_axes_px=np.concatenate([np.asarray(det.semi_axes_px).reshape(-1, 2), np.full((nr, 2), np.nan)]),
+            angle_rad=np.concatenate([np.asarray(det.angle_rad).reshape(-1), np.full(nr, np.nan)]),
+            fit_rms_px=np.concatenate([np.asarray(det.fit_rms_px).reshape(-1), np.full(nr, np.nan)]))

@@ -1,0 +1,136 @@
+"""Solver results <-> metro_msgs, and result files (YAML/JSON with units)."""
+
+from __future__ import annotations
+
+import json
+import pathlib
+
+import numpy as np
+
+from ct_calib_nodes.core.geometry import STATIC_PARAM_NAMES, STATIC_PARAM_UNITS, static_to_detector_frame
+from ct_calib_nodes.io.convert import stamp_ns
+
+STATUS_SUCCESS, STATUS_NOT_CONVERGED, STATUS_DEGENERATE, STATUS_INSUFFICIENT, STATUS_FAILED = range(5)
+
+
+def status_code(res) -> int:
+    """Map a core result to metro_msgs/SolveStatus codes."""
+    if res.success:
+        return STATUS_SUCCESS
+    msg = (res.message or "").lower()
+    if any(w in msg for w in ("degenera", "coplanar", "rank", "ill-conditioned", "not identifiable")):
+        return STATUS_DEGENERATE
+    if any(w in msg for w in ("too few", "insufficient", "no observations", "not enough")):
+        return STATUS_INSUFFICIENT
+    if res.status == -10:
+        return STATUS_DEGENERATE
+    return STATUS_NOT_CONVERGED if np.isfinite(res.cost) else STATUS_FAILED
+
+
+def estimate_msg(res, model: str, stamp, frame_id: str = "ct_detector", n_rejected: int = 0):
+    from metro_msgs.msg import EstimateStamped  # noqa: PLC0415
+
+    m = EstimateStamped()
+    m.header.stamp = stamp
+    m.header.frame_id = frame_id
+    m.model = model
+    m.names = [str(n) for n in res.names]
+    m.units = [str(u) for u in res.units]
+    m.values = [float(v) for v in res.x]
+    cov = getattr(res, "covariance_total", None)
+    cov = res.covariance if cov is None else cov
+    m.covariance = [float(v) for v in np.asarray(cov, dtype=float).ravel()] if cov is not None else []
+    s = m.status
+    s.code = status_code(res)
+    s.message = str(res.message)
+    s.iterations = int(getattr(res, "n_iter", 0))
+    s.function_evaluations = int(res.nfev)
+    s.observations = int(2 * res.n_obs)
+    s.rejected = int(n_rejected)
+    s.rms_residual = float(res.rms_px) if np.isfinite(res.rms_px) else float("nan")
+    s.cost = float(res.cost) if np.isfinite(res.cost) else float("nan")
+    s.condition_number = float(res.condition) if np.isfinite(res.condition) else float("inf")
+    return m
+
+
+def geometry_msg(res, srd_reported_m: float, sdd_reported_m: float, detector, stamp, n_rejected=0):
+    from geometry_msgs.msg import Point, Vector3  # noqa: PLC0415
+    from metro_msgs.msg import CtGeometry  # noqa: PLC0415
+
+    g = CtGeometry()
+    g.header.stamp = stamp
+    g.header.frame_id = "ct_detector"
+    g.static_estimate = estimate_msg(res, "ct_static/ferrucci2020", stamp, n_rejected=n_rejected)
+    g.srd_reported_m = float(srd_reported_m)
+    g.sdd_reported_m = float(sdd_reported_m)
+    if res.geometry is not None:
+        s, r, a = res.geometry.source_df_m, res.geometry.stage_df_m, res.geometry.axis_df
+        g.source_df = Point(x=float(s[0]), y=float(s[1]), z=float(s[2]))
+        g.stage_df = Point(x=float(r[0]), y=float(r[1]), z=float(r[2]))
+        g.axis_df = Vector3(x=float(a[0]), y=float(a[1]), z=float(a[2]))
+    g.pixel_pitch_m = float(detector.pixel_pitch_m)
+    g.image_cols, g.image_rows = int(detector.cols), int(detector.rows)
+    return g
+
+
+def static_from_geometry_msg(msg, centres_of_m):
+    """CtGeometry -> (w (13,), covariance (13,13) or None, DetectorFrameGeometry, status code)."""
+    est = msg.static_estimate
+    names = list(est.names)
+    if names[:13] != list(STATIC_PARAM_NAMES):
+        raise ValueError(f"CtGeometry parameters {names[:13]} are not the static parameters {STATIC_PARAM_NAMES}")
+    vals = np.asarray(est.values, dtype=float)
+    n = len(vals)
+    cov = np.asarray(est.covariance, dtype=float).reshape(n, n) if len(est.covariance) == n * n else None
+    w = vals[:13]
+    return w, cov, static_to_detector_frame(w, centres_of_m), int(est.status.code)
+
+
+def error_map_msg(em, mode: str, motions_msgs, stamp):
+    from metro_msgs.msg import ErrorMap  # noqa: PLC0415
+
+    m = ErrorMap()
+    m.header.stamp = stamp
+    m.header.frame_id = "ct_detector"
+    m.mode = mode
+    for f in ("srd_reported_m", "positioning_m", "u_positioning_m", "straightness_x_m", "u_straightness_x_m",
+              "straightness_y_m", "u_straightness_y_m", "pitch_rad", "u_pitch_rad", "yaw_rad", "u_yaw_rad",
+              "roll_rad", "u_roll_rad"):
+        setattr(m, f, [float(v) for v in np.asarray(getattr(em, f), dtype=float)])
+    m.motions = list(motions_msgs)
+    return m
+
+
+def _plain(v):
+    if isinstance(v, dict):
+        return {k: _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    if isinstance(v, np.ndarray):
+        return _plain(v.tolist())
+    if isinstance(v, (np.floating, float)):
+        return float(v) if np.isfinite(v) else str(float(v))
+    if isinstance(v, (np.integer,)):
+        return int(v)
+    return v
+
+
+def write_json_atomic(path, data: dict) -> pathlib.Path:
+    """Write JSON via a temp file and rename: good results are never replaced by a partial file."""
+    path = pathlib.Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(_plain(data), indent=1))
+    tmp.replace(path)
+    return path
+
+
+def static_param_table_rows(res):
+    """(names, units, values, std) of a static result, for reports."""
+    names = list(res.names)
+    units = list(res.units) if res.units else list(STATIC_PARAM_UNITS)
+    return names, units, np.asarray(res.x), np.asarray(res.std)
+
+
+__all__ = ["estimate_msg", "geometry_msg", "static_from_geometry_msg", "error_map_msg", "write_json_atomic",
+           "status_code", "stamp_ns"]

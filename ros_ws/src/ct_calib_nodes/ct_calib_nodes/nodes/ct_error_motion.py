@@ -1,0 +1,157 @@
+"""Stage error-motion node (Ferrucci et al. 2020, section 3.3).
+
+Collects ``/ct/observations`` of every stage position and the latched static
+geometry ``/ct/geometry``. When a position k >= 2 is complete (the reported SRD
+moves on, or no observation for ``idle_solve_s``) it solves the six error
+motions from all projections ("multi") and from the first projection only
+("single"), and republishes the growing error map on ``/ct/error_map`` and
+``/ct/error_map/single`` (metro_msgs/ErrorMap, latched). Uncertainties include
+the propagated uncertainty of the static geometry. Service ``~/solve`` re-runs
+the solves. With ``results_dir`` set, the results (JSON with units) are written
+there after every update (atomically).
+"""
+
+from __future__ import annotations
+
+import time
+
+from metro_msgs.msg import CtGeometry, ErrorMap, SphereObservationArray
+from metro_msgs.srv import TriggerSolve
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.node import Node
+
+from ct_calib_nodes.core.ct_pipeline import (CampaignAccumulator, campaign_error_map, solve_campaign_position,
+                                             static_result_from_estimate)
+from ct_calib_nodes.io import ct_files
+from ct_calib_nodes.io.convert import MessageError
+from ct_calib_nodes.io.observations_msg import frame_observations
+from ct_calib_nodes.io.results import error_map_msg, estimate_msg, static_from_geometry_msg
+from ct_calib_nodes.nodes.runner import QOS_LATCHED, QOS_RELIABLE_STREAM, run_node
+
+PARAMS = {
+    "instrument_file": ("", "ct_instrument.yaml; empty = package default [path]"),
+    "reference_object_file": ("", "reference_object.yaml; empty = package default [path]"),
+    "idle_solve_s": (3.0, "solve the last position when no observation arrived for this long [s]; 0 = never"),
+    "min_frames": (1, "fewest frames of a position before it is solved [count]"),
+    "loss": ("linear", "least-squares loss: linear, huber, soft_l1, cauchy, arctan"),
+}
+MODES = ("multi", "single")
+
+
+class CtErrorMotion(Node):
+    def __init__(self):
+        super().__init__("ct_error_motion")
+        for name, (default, text) in PARAMS.items():
+            self.declare_parameter(name, default, ParameterDescriptor(description=text))
+        p = {name: self.get_parameter(name).value for name in PARAMS}
+        self.p = p
+        self.instrument = ct_files.load_instrument(p["instrument_file"] or ct_files.default_instrument_path())
+        self.ref = ct_files.load_reference_object(p["reference_object_file"] or ct_files.default_reference_object_path())
+        self.id_to_index = {int(i): k for k, i in enumerate(self.ref.ids)}
+        self.acc = CampaignAccumulator()
+        self.static = None
+        self.results = {m: {} for m in MODES}        # mode -> {k: MotionResult}
+        self.solved_frames = {m: {} for m in MODES}  # mode -> {k: n_frames at solve}
+        self.bad_messages = 0
+        self.last_rx = None
+        self.pubs = {"multi": self.create_publisher(ErrorMap, "/ct/error_map", QOS_LATCHED),
+                     "single": self.create_publisher(ErrorMap, "/ct/error_map/single", QOS_LATCHED)}
+        self.create_subscription(SphereObservationArray, "/ct/observations", self._on_obs, QOS_RELIABLE_STREAM)
+        self.create_subscription(CtGeometry, "/ct/geometry", self._on_geometry, QOS_LATCHED)
+        self.create_service(TriggerSolve, "~/solve", self._on_solve)
+        self.create_timer(0.5, self._on_timer)
+
+    def _on_geometry(self, msg):
+        try:
+            w, cov, _geom, code = static_from_geometry_msg(msg, self.ref.centres_of_m)
+        except ValueError as exc:
+            self.bad_messages += 1
+            self.get_logger().warning(f"skipped bad /ct/geometry: {exc}")
+            return
+        if code != 0:
+            self.get_logger().error(f"static geometry is not usable (status {code}: {msg.static_estimate.status.message}); "
+                                    "error motions wait for a usable one")
+            return
+        self.static = static_result_from_estimate(w, cov, self.ref.centres_of_m,
+                                                  rms_px=msg.static_estimate.status.rms_residual)
+        self.results = {m: {} for m in MODES}
+        self.solved_frames = {m: {} for m in MODES}
+        self.get_logger().info("static geometry received")
+        self._solve_complete(final=False)
+
+    def _on_obs(self, msg):
+        try:
+            stamp, alpha, srd, idx, uv, sig, nrej = frame_observations(msg, self.id_to_index)
+            k = self.acc.add_frame(stamp, alpha, srd, idx, uv, sig, nrej)
+        except (MessageError, ValueError) as exc:
+            self.bad_messages += 1
+            self.get_logger().warning(f"skipped bad observation message #{self.bad_messages}: {exc}")
+            return
+        self.last_rx = time.monotonic()
+        if k >= 2 and k == len(self.acc.positions) - 1 and self.acc.positions[k].n_frames == 1:
+            self._solve_complete(final=False)      # position k-1 just completed
+
+    def _on_timer(self):
+        idle = float(self.p["idle_solve_s"])
+        if idle > 0 and self.last_rx is not None and time.monotonic() - self.last_rx > idle:
+            self._solve_complete(final=True)
+
+    def _solve_complete(self, final: bool):
+        """Solve every complete, not yet solved position (the last one only when final)."""
+        if self.static is None or len(self.acc.positions) < 2:
+            return
+        last = len(self.acc.positions) - (0 if final else 1)
+        changed = False
+        for k in range(1, last):
+            n = self.acc.positions[k].n_frames
+            if n < int(self.p["min_frames"]):
+                continue
+            for mode in MODES:
+                if self.solved_frames[mode].get(k) == n:
+                    continue
+                t0 = time.perf_counter()
+                try:
+                    res = solve_campaign_position(self.acc, k, self.static, self.instrument.detector, mode=mode,
+                                                  loss=str(self.p["loss"]))
+                except ValueError as exc:
+                    self.get_logger().error(f"position {k + 1} ({mode}): {exc}")
+                    self.solved_frames[mode][k] = n
+                    continue
+                self.results[mode][k] = res
+                self.solved_frames[mode][k] = n
+                changed = True
+                log = self.get_logger().info if res.success else self.get_logger().error
+                log(f"position {k + 1} ({mode}, {res.n_views} view(s), {res.n_obs} centres): "
+                    f"{'ok' if res.success else 'NOT USABLE: ' + res.message}; rms {res.rms_px:.4f} px; "
+                    f"dz = {res.x[2] * 1e3:.4f} mm; {1e3 * (time.perf_counter() - t0):.0f} ms")
+        if changed:
+            self._publish()
+
+    def _publish(self):
+        stamp = self.get_clock().now().to_msg()
+        for mode in MODES:
+            if not self.results[mode]:
+                continue
+            em, ks = campaign_error_map(self.acc, self.results[mode], self.static)
+            motions = [estimate_msg(self.results[mode][k], f"ct_error_motion/{mode}", stamp) for k in ks[1:]]
+            self.pubs[mode].publish(error_map_msg(em, mode, motions, stamp))
+        self.get_logger().info(f"error map updated: {len(self.results['multi'])} position(s) solved")
+
+    def _on_solve(self, request, response):
+        if request.discard_previous:
+            self.solved_frames = {m: {} for m in MODES}
+        if self.static is None:
+            response.accepted, response.message = False, "no usable static geometry on /ct/geometry yet"
+            return response
+        self._solve_complete(final=True)
+        response.accepted = bool(self.results["multi"])
+        response.message = f"{len(self.results['multi'])} position(s) solved"
+        return response
+
+
+def main(args=None):
+    raise SystemExit(run_node(CtErrorMotion, args))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,135 @@
+"""Simulated cone-beam CT: renders a calibration campaign and publishes it per INTERFACES.md.
+
+Publishes ``/ct/detector/image`` (sensor_msgs/Image, mono16 counts or 32FC1
+transmission, frame_id ``ct_detector``) and ``/ct/stage/joint_states``
+(names [rotary, magnification], positions [alpha rad, reported SRD m]) with
+identical stamps, for every projection of every stage position. The truth
+(geometry, error motions) never goes on a topic; it can be written to a file
+for tests and for a simulated independent reference measurement.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.node import Node
+from sensor_msgs.msg import Image, JointState
+
+from ct_calib_nodes.core.render import RenderSettings, render_projection
+from ct_calib_nodes.core.scenario import default_campaign
+from ct_calib_nodes.io import ct_files
+from ct_calib_nodes.io.convert import image_from_array
+from ct_calib_nodes.io.truth_files import write_reference_error_map, write_truth
+from ct_calib_nodes.nodes.runner import QOS_RELIABLE_STREAM, run_node
+
+PARAMS = {
+    "instrument_file": ("", "ct_instrument.yaml to simulate; empty = the package default [path]"),
+    "reference_object_file": ("", "reference_object.yaml to simulate; empty = the package default [path]"),
+    "n_positions": (6, "stage positions along the magnification axis [count]"),
+    "srd_first_m": (0.364, "instrument-reported SRD of the first stage position [m]"),
+    "step_m": (0.072, "stage step between positions [m]"),
+    "projections_per_position": (24, "projections over one full turn at each position [count]"),
+    "rate_hz": (8.0, "frame rate; 0 = as fast as rendering allows [Hz]"),
+    "encoding": ("mono16", "frame encoding: mono16 (counts) or 32FC1 (transmission I/I0)"),
+    "seed": (20201, "random seed of the photon noise [-]"),
+    "wait_for_subscribers": (1, "start only when /ct/detector/image has this many subscribers [count]"),
+    "wait_timeout_s": (60.0, "give up waiting for subscribers after this long [s]"),
+    "exit_when_done": (True, "end the process after the last frame"),
+    "truth_output": ("", "write the simulation truth here (YAML; for tests, never read by solvers) [path]"),
+    "reference_output": ("", "write a simulated independent reference error map here (CSV) [path]"),
+    "blur_sigma_px": (0.7, "detector blur, Gaussian sigma [px]"),
+    "flat_field_counts": (0.0, "open-beam counts; 0 = the instrument file's value [counts]"),
+    # hidden physics: off by default; the solvers are never told
+    "encoder_eccentricity_rad": (0.0, "hidden: rotary-encoder error amplitude A, alpha_true = alpha + A sin(alpha + phase) [rad]"),
+    "encoder_phase_rad": (0.0, "hidden: phase of the encoder error [rad]"),
+    "focal_spot_drift_m_per_s": ([0.0, 0.0, 0.0], "hidden: focal-spot drift velocity in the detector frame [m/s]"),
+    "detector_distortion_k1_per_m2": (0.0, "hidden: radial detector distortion k1 [1/m^2]"),
+    "ellipse_centre_bias": (False, "hidden: render exact cone-sphere silhouettes (ellipse centre != centre projection)"),
+}
+
+
+class CtProjectionSim(Node):
+    def __init__(self):
+        super().__init__("ct_projection_sim")
+        for name, (default, text) in PARAMS.items():
+            self.declare_parameter(name, default, ParameterDescriptor(description=text))
+        p = {name: self.get_parameter(name).value for name in PARAMS}
+        self.p = p
+        self.instrument = ct_files.load_instrument(p["instrument_file"] or ct_files.default_instrument_path())
+        self.ref = ct_files.load_reference_object(p["reference_object_file"] or ct_files.default_reference_object_path())
+        if p["encoding"] not in ("mono16", "32FC1"):
+            raise ValueError(f"encoding must be mono16 or 32FC1, got {p['encoding']!r}")
+        self.truth = default_campaign(int(p["n_positions"]), float(p["step_m"]), float(p["srd_first_m"]),
+                                      self.instrument.sdd_reported_m)
+        flat = float(p["flat_field_counts"]) or self.instrument.flat_field_counts or 50000.0
+        self.settings = RenderSettings(
+            flat_field_counts=flat, blur_sigma_px=float(p["blur_sigma_px"]),
+            encoder_eccentricity_rad=float(p["encoder_eccentricity_rad"]), encoder_phase_rad=float(p["encoder_phase_rad"]),
+            focal_spot_drift_m_per_s=tuple(float(v) for v in p["focal_spot_drift_m_per_s"]),
+            detector_distortion_k1_per_m2=float(p["detector_distortion_k1_per_m2"]),
+            ellipse_centre_bias=bool(p["ellipse_centre_bias"]))
+        if p["truth_output"]:
+            write_truth(p["truth_output"], self.truth, self.settings, int(p["projections_per_position"]))
+        if p["reference_output"]:
+            write_reference_error_map(p["reference_output"], self.truth)
+        self.rng = np.random.default_rng(int(p["seed"]))
+        self.pub_img = self.create_publisher(Image, "/ct/detector/image", QOS_RELIABLE_STREAM)
+        self.pub_js = self.create_publisher(JointState, "/ct/stage/joint_states", QOS_RELIABLE_STREAM)
+        n = int(p["projections_per_position"])
+        if n < 1:
+            raise ValueError("projections_per_position must be >= 1")
+        self.alphas = 2 * np.pi * np.arange(n) / n
+        self.queue = [(k, j) for k in range(len(self.truth.srd_reported_m)) for j in range(n)]
+        self.sent = 0
+        self.t_start = None
+        self.t_wait = time.monotonic()
+        period = 1.0 / p["rate_hz"] if p["rate_hz"] > 0 else 0.001
+        self.timer = self.create_timer(period, self._tick)
+        self.get_logger().info(
+            f"campaign: {len(self.truth.srd_reported_m)} positions x {n} projections, "
+            f"SRD {self.truth.srd_reported_m[0]*1e3:.1f}..{self.truth.srd_reported_m[-1]*1e3:.1f} mm, "
+            f"{self.instrument.detector.cols}x{self.instrument.detector.rows} {p['encoding']}")
+
+    def _tick(self):
+        if self.t_start is None:
+            subs = self.pub_img.get_subscription_count()
+            if subs < int(self.p["wait_for_subscribers"]):
+                if time.monotonic() - self.t_wait > float(self.p["wait_timeout_s"]):
+                    self.get_logger().error(f"only {subs} subscriber(s) after {self.p['wait_timeout_s']} s; giving up")
+                    self.exit_code = 3
+                    rclpy.try_shutdown()
+                return
+            self.t_start = time.monotonic()
+        if self.sent >= len(self.queue):
+            return
+        k, j = self.queue[self.sent]
+        t_s = time.monotonic() - self.t_start
+        frame = render_projection(self.truth.static_w, self.truth.motions[k], self.alphas[j], self.ref,
+                                  self.instrument.detector, self.settings, self.rng, time_s=t_s,
+                                  output="mono16" if self.p["encoding"] == "mono16" else "transmission")
+        stamp = self.get_clock().now().to_msg()
+        js = JointState(name=["rotary", "magnification"],
+                        position=[float(self.alphas[j]), float(self.truth.srd_reported_m[k])])
+        js.header.stamp = stamp
+        js.header.frame_id = "ct_stage"
+        self.pub_js.publish(js)
+        self.pub_img.publish(image_from_array(frame.image, stamp, "ct_detector"))
+        self.sent += 1
+        if j == 0 or self.sent == len(self.queue):
+            self.get_logger().info(f"position {k + 1}/{len(self.truth.srd_reported_m)}: frame {self.sent}/{len(self.queue)}")
+        if self.sent == len(self.queue):
+            self.get_logger().info(f"campaign complete: {self.sent} frames in {time.monotonic() - self.t_start:.1f} s")
+            if self.p["exit_when_done"]:
+                # give DDS a moment to deliver the last reliable samples
+                self.create_timer(2.0, lambda: rclpy.try_shutdown())
+
+
+def main(args=None):
+    raise SystemExit(run_node(CtProjectionSim, args))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,129 @@
+"""Sphere detection node: CT frames + stage readings -> sphere-centre observations with ids.
+
+Subscribes ``/ct/detector/image`` and ``/ct/stage/joint_states`` and pairs them
+by identical ``header.stamp`` (never by arrival order). Each pair goes through
+core detection and identity (ct_pipeline.FrameProcessor); the result, accepted
+and rejected spheres with reasons, is published on ``/ct/observations``
+(metro_msgs/SphereObservationArray, same stamp as the frame). A solved static
+geometry on ``/ct/geometry`` improves the identity predictions. Bad frames and
+unpaired messages are logged, counted and skipped; the node keeps running.
+"""
+
+from __future__ import annotations
+
+import time
+
+from metro_msgs.msg import CtGeometry, SphereObservationArray
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import Image, JointState
+
+from ct_calib_nodes.core.ct_pipeline import FrameProcessor
+from ct_calib_nodes.core.detect import FrameError
+from ct_calib_nodes.io import ct_files
+from ct_calib_nodes.io.convert import MessageError, array_from_image, stage_from_joint_state, stamp_ns
+from ct_calib_nodes.io.observations_out import observation_array_msg
+from ct_calib_nodes.io.results import static_from_geometry_msg
+from ct_calib_nodes.nodes.runner import QOS_LATCHED, QOS_RELIABLE_STREAM, run_node
+
+PARAMS = {
+    "instrument_file": ("", "ct_instrument.yaml; empty = package default [path]"),
+    "reference_object_file": ("", "reference_object.yaml; empty = package default [path]"),
+    "init_frames": (6, "frames used to initialise sphere identity at the first position [count]"),
+    "pair_timeout_s": (10.0, "drop an image or stage reading left unpaired this long [s]"),
+    "reliable": (True, "reliable subscriptions (complete campaigns); false = sensor-data QoS for best-effort drivers"),
+}
+
+
+class CtSphereDetector(Node):
+    def __init__(self):
+        super().__init__("ct_sphere_detector")
+        for name, (default, text) in PARAMS.items():
+            self.declare_parameter(name, default, ParameterDescriptor(description=text))
+        p = {name: self.get_parameter(name).value for name in PARAMS}
+        self.p = p
+        self.instrument = ct_files.load_instrument(p["instrument_file"] or ct_files.default_instrument_path())
+        self.ref = ct_files.load_reference_object(p["reference_object_file"] or ct_files.default_reference_object_path())
+        self.proc = FrameProcessor(self.ref, self.instrument.detector, self.instrument.sdd_reported_m,
+                                   self.instrument.flat_field_counts, init_frames=int(p["init_frames"]))
+        self.images, self.stages = {}, {}     # stamp_ns -> (msg, arrival time)
+        self.counts = {"frames": 0, "bad_frames": 0, "bad_stage": 0, "unpaired": 0, "published": 0}
+        qos = QOS_RELIABLE_STREAM if p["reliable"] else qos_profile_sensor_data
+        self.pub = self.create_publisher(SphereObservationArray, "/ct/observations", QOS_RELIABLE_STREAM)
+        self.create_subscription(Image, "/ct/detector/image", self._on_image, qos)
+        self.create_subscription(JointState, "/ct/stage/joint_states", self._on_stage, qos)
+        self.create_subscription(CtGeometry, "/ct/geometry", self._on_geometry, QOS_LATCHED)
+        self.create_timer(1.0, self._expire)
+
+    def _on_image(self, msg):
+        self.images[stamp_ns(msg.header.stamp)] = (msg, time.monotonic())
+        self._pair(stamp_ns(msg.header.stamp))
+
+    def _on_stage(self, msg):
+        self.stages[stamp_ns(msg.header.stamp)] = (msg, time.monotonic())
+        self._pair(stamp_ns(msg.header.stamp))
+
+    def _pair(self, t):
+        if t not in self.images or t not in self.stages:
+            return
+        img, _ = self.images.pop(t)
+        js, _ = self.stages.pop(t)
+        self.counts["frames"] += 1
+        try:
+            alpha, srd = stage_from_joint_state(js)
+        except MessageError as exc:
+            self.counts["bad_stage"] += 1
+            self.get_logger().warning(f"frame {t}: skipped, bad stage reading: {exc}")
+            return
+        try:
+            image, enc = array_from_image(img, (self.instrument.detector.rows, self.instrument.detector.cols))
+            results = self.proc.push(t, image, enc, alpha, srd)
+        except (MessageError, FrameError) as exc:
+            self.counts["bad_frames"] += 1
+            self.get_logger().warning(f"frame {t}: skipped ({self.counts['bad_frames']} bad so far): {exc}")
+            return
+        for fr in results:
+            self._publish(fr)
+
+    def _publish(self, fr):
+        from builtin_interfaces.msg import Time  # noqa: PLC0415
+
+        stamp = Time(sec=fr.stamp_ns // 1_000_000_000, nanosec=fr.stamp_ns % 1_000_000_000)
+        self.pub.publish(observation_array_msg(fr, stamp, self.instrument.detector))
+        self.counts["published"] += 1
+        if self.counts["published"] % 24 == 0:
+            n_ok = int((fr.flag == 0).sum())
+            self.get_logger().info(f"{self.counts['published']} frames published; last: {n_ok} accepted, "
+                                   f"{len(fr.flag) - n_ok} rejected; counts {self.counts}")
+
+    def _on_geometry(self, msg):
+        try:
+            w, _cov, _g, code = static_from_geometry_msg(msg, self.ref.centres_of_m)
+        except ValueError as exc:
+            self.get_logger().warning(f"ignored bad /ct/geometry: {exc}")
+            return
+        if code == 0:
+            self.proc.set_static(w)
+            self.get_logger().info("identity predictions now use the solved static geometry")
+
+    def _expire(self):
+        now, limit = time.monotonic(), float(self.p["pair_timeout_s"])
+        for store, what in ((self.images, "image"), (self.stages, "stage reading")):
+            for t in [t for t, (_m, ta) in store.items() if now - ta > limit]:
+                store.pop(t)
+                self.counts["unpaired"] += 1
+                self.get_logger().warning(f"dropped unpaired {what} stamped {t} ns (no partner within {limit} s)")
+
+    def close(self):
+        for fr in self.proc.flush():
+            self._publish(fr)
+        self.get_logger().info(f"detector counts: {self.counts}")
+
+
+def main(args=None):
+    raise SystemExit(run_node(CtSphereDetector, args))
+
+
+if __name__ == "__main__":
+    main()
