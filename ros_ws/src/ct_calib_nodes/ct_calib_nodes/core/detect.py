@@ -630,19 +630,30 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
             continue
         cand.append(i)
 
-    # --- proximity: penumbrae of neighbours interact
-    if len(cand) > 1:
-        cc = cents[cand]
-        rr = 0.5 * d_eq[cand]
-        dist = np.hypot(cc[:, None, 0] - cc[None, :, 0], cc[:, None, 1] - cc[None, :, 1])
-        gap = dist - rr[:, None] - rr[None, :]
-        np.fill_diagonal(gap, np.inf)
-        close = np.min(gap, axis=1) < st.proximity_margin_px
+    # --- proximity: penumbrae of neighbours interact. Compared against every
+    # blob of noticeable size, including rejected ones (a merged pair or the
+    # tube's band still casts its shadow), by the distance to its bounding box.
+    if cand:
+        others = np.nonzero(d_eq >= max(3.0, 0.5 * dmin))[0]
+        x0b = stats[others, 0].astype(np.float64) - 0.5
+        y0b = stats[others, 1].astype(np.float64) - 0.5
+        x1b = x0b + stats[others, 2]
+        y1b = y0b + stats[others, 3]
+        wb, hb = stats[others, 2], stats[others, 3]
+        roundish = (d_eq[others] <= dmax) & (np.maximum(wb, hb) <= 1.3 * np.minimum(wb, hb))
         keep = []
-        for k, i in enumerate(cand):
-            if close[k]:
-                j = int(np.argmin(gap[k]))
-                reject(i, "overlap", f"gap {gap[k, j]:.1f} px to a neighbouring shadow "
+        for i in cand:
+            cx, cy = cents[i]
+            gx = np.maximum(np.maximum(x0b - cx, cx - x1b), 0.0)
+            gy = np.maximum(np.maximum(y0b - cy, cy - y1b), 0.0)
+            gap = np.hypot(gx, gy) - 0.5 * d_eq[i]
+            # round single-sphere blobs: centre distance minus both radii
+            gap = np.where(roundish, np.hypot(cents[others, 0] - cx, cents[others, 1] - cy)
+                           - 0.5 * d_eq[i] - 0.5 * d_eq[others], gap)
+            gap[others == i] = np.inf
+            k = int(np.argmin(gap))
+            if gap[k] < st.proximity_margin_px:
+                reject(i, "overlap", f"gap {max(gap[k], 0.0):.1f} px to a neighbouring shadow "
                                      f"< {st.proximity_margin_px:.1f} px")
             else:
                 keep.append(i)
@@ -693,8 +704,11 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
             oxs = dxs[:, :, -n_out:]
             oys = dys[:, :, -n_out:]
             b0 = np.median(ob.reshape(nc, -1), axis=1)
-            bx = np.sum((ob - b0[:, None, None]) * oxs, axis=(1, 2)) / np.sum(oxs ** 2, axis=(1, 2))
-            by = np.sum((ob - b0[:, None, None]) * oys, axis=(1, 2)) / np.sum(oys ** 2, axis=(1, 2))
+            # ring samples darkened by a neighbour's tail do not enter the plane
+            wr = (ob > b0[:, None, None] * (1.0 - 0.5 * st.segment_depth)).astype(np.float64)
+            res0 = (ob - b0[:, None, None]) * wr
+            bx = np.sum(res0 * oxs, axis=(1, 2)) / np.maximum(np.sum(wr * oxs ** 2, axis=(1, 2)), 1e-9)
+            by = np.sum(res0 * oys, axis=(1, 2)) / np.maximum(np.sum(wr * oys ** 2, axis=(1, 2)), 1e-9)
             bg_origin = centre.copy()
         offx = centre[:, 0] - bg_origin[:, 0]
         offy = centre[:, 1] - bg_origin[:, 1]
