@@ -628,6 +628,15 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
         if aspect > 1.6 * st.max_axis_ratio:
             reject(i, "overlap", f"blob bounding box aspect {aspect:.2f}: merged shadows")
             continue
+        # second moments of the blob: axis ratio and filling of its moment ellipse
+        mom = cv2.moments((labels[y0:y0 + h, x0:x0 + w] == i + 1).view(np.uint8), binaryImage=True)
+        mu20, mu02, mu11 = mom["mu20"] / mom["m00"], mom["mu02"] / mom["m00"], mom["mu11"] / mom["m00"]
+        tr_, dd_ = mu20 + mu02, np.sqrt(max((mu20 - mu02) ** 2 + 4 * mu11 ** 2, 0.0))
+        l1, l2 = 0.5 * (tr_ + dd_), 0.5 * (tr_ - dd_)
+        m_ratio = np.sqrt(l1 / l2) if l2 > 0 else np.inf
+        if m_ratio > st.max_axis_ratio:
+            reject(i, "overlap", f"blob moment axis ratio {m_ratio:.2f} > {st.max_axis_ratio}: merged shadows")
+            continue
         cand.append(i)
 
     # --- proximity: penumbrae of neighbours interact. Compared against every
