@@ -309,7 +309,7 @@ class FrameDetections:
 # --------------------------------------------------------------------------- frame checks
 
 def to_transmission(image, encoding: str = "mono16", flat_field_counts=None,
-                    expected_shape=None) -> np.ndarray:
+                    expected_shape=None, _convert: bool = True) -> np.ndarray | None:
     """Check one frame and convert it to transmission.
 
     Parameters
@@ -350,10 +350,23 @@ def to_transmission(image, encoding: str = "mono16", flat_field_counts=None,
             raise FrameError("wrong_dtype", f"mono16 frames must be uint16, got {img.dtype}")
         if np.count_nonzero(sub == 65535) > 0.5 * sub.size:
             raise FrameError("saturated", "more than half of the pixels are at 65535 counts")
-        if flat_field_counts is None:
-            i0 = float(np.median(sub))
-            if i0 <= 0.0:
-                raise FrameError("all_dark", "median count is 0 and no flat field was given")
+        if flat_field_counts is None or (not _convert and np.ndim(flat_field_counts) == 0):
+            if flat_field_counts is None:
+                i0 = float(np.median(sub))
+                if i0 <= 0.0:
+                    raise FrameError("all_dark", "median count is 0 and no flat field was given")
+            else:
+                i0 = float(flat_field_counts)
+                if not (np.isfinite(i0) and i0 > 0):
+                    raise FrameError("bad_flat_field", f"flat_field_counts must be > 0, got {i0}")
+            if not _convert:
+                med = float(np.median(sub)) / i0
+                if med < 0.02:
+                    raise FrameError("all_dark", f"median transmission {med:.3g} < 0.02 (beam off or shutter closed)")
+                if int(sub.max()) == int(sub.min()) and int(img.max()) == int(img.min()):
+                    raise FrameError("uniform", f"every pixel has the same value {int(img.flat[0])} "
+                                                "(no signal, no noise)")
+                return None
             trans = img.astype(np.float32) * np.float32(1.0 / i0)
         else:
             ff = np.asarray(flat_field_counts, dtype=np.float64)
@@ -555,9 +568,11 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
     """
     st = settings if settings is not None else DetectionSettings()
     drange = _check_range(diameter_px_range)
-    trans = to_transmission(image, encoding, flat_field_counts, expected_shape)
-    rows, cols = trans.shape
-    bg = float(np.median(trans[::8, ::8]))
+    fast16 = (st.vertical_background and encoding == "mono16"
+              and (flat_field_counts is None or np.ndim(flat_field_counts) == 0))
+    trans = to_transmission(image, encoding, flat_field_counts, expected_shape, _convert=not fast16)
+    rows, cols = np.asarray(image).shape
+    bg = float(np.median(trans[::8, ::8])) if trans is not None else 1.0
     if st.vertical_background:
         if st.background_window_px is not None:
             win = int(st.background_window_px)
@@ -569,7 +584,7 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
         kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (1, win))
         # morphology on 16-bit integers is ~2x faster than on float32 in OpenCV
         raw = np.asarray(image)
-        if encoding == "mono16" and (flat_field_counts is None or np.ndim(flat_field_counts) == 0):
+        if fast16:
             bg16 = cv2.morphologyEx(cv2.blur(raw, (3, 3)), cv2.MORPH_CLOSE, kernel)
             np.maximum(bg16, 1, out=bg16)
             trans = cv2.divide(raw, bg16, dtype=cv2.CV_32F)
@@ -752,9 +767,17 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
                 why[c] = f"only {np.count_nonzero(v)} of {nr} rays found an edge"
                 continue
             pts = np.stack([ex[c, v], ey[c, v]], axis=1)
+            last_pass = pas == int(st.n_passes) - 1
             try:
                 p = _fit_one(pts, st.ellipse_fitter)
                 n_fits += 1
+                if not last_pass:       # intermediate passes only re-centre the rays
+                    if np.all(np.isfinite(p)) and p[3] > 0:
+                        fits[c] = p
+                    else:
+                        ok[c] = False
+                        why[c] = "ellipse fit returned a degenerate ellipse"
+                    continue
                 d, nx, ny = _ellipse_residuals(pts, p)
                 # one round of outlier removal (5 x robust sigma, at least 0.1 px)
                 sig = 1.2533 * np.mean(np.abs(d))
