@@ -172,12 +172,21 @@ def campaign_error_map(acc: CampaignAccumulator, motion_results: dict, static: S
     ks = [0] + sorted(k for k, r in motion_results.items() if k > 0 and r.success)
     motions = np.zeros((len(ks), 6))
     covs = np.zeros((len(ks), 6, 6))
+    n_s = len(static.x)
+    sens = np.zeros((len(ks), 6, n_s))
+    have_sens = static.covariance is not None and np.all(np.isfinite(static.covariance))
     for i, k in enumerate(ks[1:], start=1):
         r = motion_results[k]
         motions[i] = r.x
-        c = r.covariance_total if getattr(r, "covariance_total", None) is not None else r.covariance
-        covs[i] = c
+        covs[i] = r.covariance                      # conditional on the static geometry
+        if getattr(r, "static_sensitivity", None) is not None and r.static_sensitivity.shape == (6, n_s):
+            sens[i] = r.static_sensitivity
+        else:
+            have_sens = False
     srd = np.array([acc.positions[k].srd_reported_m for k in ks])
+    if have_sens:
+        # joint covariance: the static geometry's uncertainty is shared by all positions
+        return error_map(srd, motions, covs, static_sensitivities=sens, static_covariance=static.covariance), ks
     return error_map(srd, motions, covs), ks
 
 

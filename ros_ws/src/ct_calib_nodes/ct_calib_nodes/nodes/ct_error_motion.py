@@ -31,7 +31,7 @@ from ct_calib_nodes.nodes.runner import QOS_LATCHED, QOS_RELIABLE_STREAM, run_no
 PARAMS = {
     "instrument_file": ("", "ct_instrument.yaml; empty = package default [path]"),
     "reference_object_file": ("", "reference_object.yaml; empty = package default [path]"),
-    "idle_solve_s": (3.0, "solve the last position when no observation arrived for this long [s]; 0 = never"),
+    "idle_solve_s": (5.0, "solve the last position when no observation arrived for this long [s]; 0 = never"),
     "min_frames": (1, "fewest frames of a position before it is solved [count]"),
     "loss": ("linear", "least-squares loss: linear, huber, soft_l1, cauchy, arctan"),
 }

@@ -31,7 +31,7 @@ PARAMS = {
     "instrument_file": ("", "ct_instrument.yaml; empty = package default [path]"),
     "reference_object_file": ("", "reference_object.yaml; empty = package default [path]"),
     "init_frames": (6, "frames used to initialise sphere identity at the first position [count]"),
-    "pair_timeout_s": (10.0, "drop an image or stage reading left unpaired this long [s]"),
+    "pair_timeout_s": (120.0, "drop an image or stage reading left unpaired this long [s]"),
     "reliable": (True, "reliable subscriptions (complete campaigns); false = sensor-data QoS for best-effort drivers"),
 }
 
