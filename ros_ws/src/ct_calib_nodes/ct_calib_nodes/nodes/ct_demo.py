@@ -98,10 +98,10 @@ def main(argv=None):
     seen = {"obs": 0, "all_obs_at": None, "multi_after": False, "single_after": False}
 
     def on_obs(_m):
+        # the monitor may miss early messages during discovery: completion does not rely on the count
         seen["obs"] += 1
-        if seen["obs"] >= n_frames:
-            seen["all_obs_at"] = time.monotonic()
-            seen["multi_after"] = seen["single_after"] = False
+        seen["all_obs_at"] = time.monotonic()
+        seen["multi_after"] = seen["single_after"] = False
 
     def on_map(mode, m):
         latest[mode] = m
@@ -119,7 +119,9 @@ def main(argv=None):
         while time.monotonic() - t_start < args.timeout:
             rclpy.spin_once(node, timeout_sec=0.2)
             # done: every frame detected, and both error maps updated after the last observation
-            done = seen["multi_after"] and seen["single_after"] and \
+            sim_done = procs["sim"][0].poll() == 0
+            quiet = seen["all_obs_at"] is not None and time.monotonic() - seen["all_obs_at"] > 6.0
+            done = sim_done and quiet and seen["multi_after"] and seen["single_after"] and \
                 len(latest["multi"].srd_reported_m) >= args.positions and \
                 len(latest["single"].srd_reported_m) >= args.positions
             if done:
