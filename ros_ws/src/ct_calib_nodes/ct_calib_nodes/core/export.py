@@ -74,6 +74,7 @@ import numpy as np
 
 from .geometry import (
     MOTION_PARAM_NAMES,
+    _check_motion,
     DetectorFrameGeometry,
     DetectorSpec,
     detector_rotation,
@@ -113,15 +114,6 @@ def _check_geom(geom) -> DetectorFrameGeometry:
     if not float(geom.source_df_m[2]) < 0.0:
         raise ValueError("geom.source_df_m must lie on the -Z side of the detector (z < 0)")
     return geom
-
-
-def _check_motion(motion) -> np.ndarray:
-    m = np.asarray(motion, dtype=float)
-    if m.shape != (6,):
-        raise ValueError(f"motion must have shape (6,) ({', '.join(MOTION_PARAM_NAMES)}), got {m.shape}")
-    if not np.all(np.isfinite(m)):
-        raise ValueError("motion contains NaN or inf")
-    return m
 
 
 def _check_alpha(alpha_rad) -> np.ndarray:

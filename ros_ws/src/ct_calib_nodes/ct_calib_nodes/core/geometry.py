@@ -155,6 +155,15 @@ def _check_static(w) -> np.ndarray:
     return w
 
 
+def _check_motion(motion) -> np.ndarray:
+    m = np.asarray(motion, dtype=float)
+    if m.shape != (6,):
+        raise ValueError(f"motion must have shape (6,) ({', '.join(MOTION_PARAM_NAMES)}), got {m.shape}")
+    if not np.all(np.isfinite(m)):
+        raise ValueError("motion contains NaN or inf")
+    return m
+
+
 def _check_points(p, name="centres_of_m") -> np.ndarray:
     p = np.asarray(p, dtype=float)
     if p.ndim != 2 or p.shape[1] != 3:
@@ -273,9 +282,7 @@ def sphere_centres_df(geom: DetectorFrameGeometry, motion, alpha_rad) -> np.ndar
     -------
     ndarray of shape (M, N, 3) [m]
     """
-    m = np.asarray(motion, dtype=float)
-    if m.shape != (6,) or not np.all(np.isfinite(m)):
-        raise ValueError(f"motion must be 6 finite values, got shape {m.shape}")
+    m = _check_motion(motion)
     g = motion_rotation(m[3], m[4], m[5])
     r_k = geom.stage_df_m + m[:3]                      # eq. 8
     axis_k = g @ geom.axis_df                          # eq. 9

@@ -43,7 +43,7 @@ Hidden physics (all off by default; the solvers are never told about them):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import cv2
@@ -401,6 +401,17 @@ def _check_inputs(static_w, motion, alpha_rad, ref, detector, settings, time_s):
     return w, m, float(a), float(t)
 
 
+def _check_render_call(static_w, motion, alpha_rad, ref, detector, settings, rng, time_s, output):
+    """Checks shared by the renderers; returns (settings, w, motion, alpha, time)."""
+    settings = RenderSettings() if settings is None else settings
+    w, m, a, t = _check_inputs(static_w, motion, alpha_rad, ref, detector, settings, time_s)
+    if output not in ("mono16", "transmission"):
+        raise ValueError(f"output must be 'mono16' or 'transmission', got {output!r}")
+    if settings.poisson and not isinstance(rng, np.random.Generator):
+        raise ValueError("rng (numpy.random.Generator) is required when settings.poisson is True")
+    return settings, w, m, a, t
+
+
 def _object_points_df(w, ref, motion, alpha_true, extra_of=None):
     pts = ref.centres_of_m if extra_of is None else np.vstack([ref.centres_of_m, extra_of])
     geom = static_to_detector_frame(w, pts)
@@ -548,12 +559,8 @@ def render_projection_bruteforce(static_w, motion, alpha_rad, ref: ReferenceObje
     at ``oversample`` everywhere), without the bounding-box shortcut. Slow:
     meant for tests and benchmarks that check the fast renderer against it.
     """
-    settings = RenderSettings() if settings is None else settings
-    w, m, a, t = _check_inputs(static_w, motion, alpha_rad, ref, detector, settings, time_s)
-    if output not in ("mono16", "transmission"):
-        raise ValueError(f"output must be 'mono16' or 'transmission', got {output!r}")
-    if settings.poisson and not isinstance(rng, np.random.Generator):
-        raise ValueError("rng (numpy.random.Generator) is required when settings.poisson is True")
+    settings, w, m, a, t = _check_render_call(static_w, motion, alpha_rad, ref, detector, settings, rng,
+                                              time_s, output)
     sc = _place_scene(w, m, a, t, ref, detector, settings)
     os_ = int(settings.oversample)
     trans = np.ones((detector.rows, detector.cols), dtype=np.float32)
@@ -593,16 +600,12 @@ def render_projection(static_w, motion, alpha_rad, ref: ReferenceObject, detecto
     -------
     RenderedFrame
     """
-    settings = RenderSettings() if settings is None else settings
-    w, m, a, t = _check_inputs(static_w, motion, alpha_rad, ref, detector, settings, time_s)
-    if output not in ("mono16", "transmission"):
-        raise ValueError(f"output must be 'mono16' or 'transmission', got {output!r}")
-    if settings.poisson and not isinstance(rng, np.random.Generator):
-        raise ValueError("rng (numpy.random.Generator) is required when settings.poisson is True")
+    settings, w, m, a, t = _check_render_call(static_w, motion, alpha_rad, ref, detector, settings, rng,
+                                              time_s, output)
 
     sc = _place_scene(w, m, a, t, ref, detector, settings)
     truth, ell_m, k1, src = sc.truth, sc.ell_m, sc.k1, sc.src
-    tube, tube_df, mu_t = ref.tube, sc.tube_df, sc.mu_t
+    tube, tube_df = ref.tube, sc.tube_df
     os_ = int(settings.oversample)
 
     trans = np.ones((detector.rows, detector.cols), dtype=np.float32)

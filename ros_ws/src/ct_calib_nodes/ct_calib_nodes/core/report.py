@@ -44,6 +44,7 @@ __all__ = [
     "ParameterTable",
     "ReprojectionResiduals",
     "error_map_from_motions",
+    "series_from_error_map",
     "read_reference_error_map",
     "write_report",
 ]
@@ -265,34 +266,33 @@ def error_map_from_motions(name, srd_reported_m, motions, motion_std=None) -> Er
     -------
     ErrorMapSeries
     """
+    from .error_map import error_map  # noqa: PLC0415 - the one definition of the error map
+
     srd = _vec(srd_reported_m, "srd_reported_m")
     k = srd.shape[0]
     m = np.asarray(motions, dtype=float)
     if m.shape != (k, 6) or not np.all(np.isfinite(m)):
         raise ValueError(f"motions must be finite with shape ({k}, 6), got {m.shape}")
-    t = srd - srd[0]
-    a = np.stack([np.ones_like(t), t], axis=1)
-    if k >= 2 and np.ptp(t) > 0:
-        h = a @ np.linalg.pinv(a)
-    else:
-        h = np.eye(k)          # no line can be fitted: straightness undefined -> 0
-    resid = np.eye(k) - h
-    kw = {}
+    cov = None
     if motion_std is not None:
         s = np.asarray(motion_std, dtype=float)
         if s.shape != (k, 6) or not np.all(np.isfinite(s)) or np.any(s < 0):
             raise ValueError(f"motion_std must be finite, non-negative, shape ({k}, 6), got {s.shape}")
+        cov = np.einsum("kj,ij->kij", s ** 2, np.eye(6))        # independent positions, diagonal
+    return series_from_error_map(name, error_map(srd, m, cov), with_uncertainty=motion_std is not None)
 
-        def u_detrend(u):
-            return np.sqrt(np.einsum("ij,j,ij->i", resid, u ** 2, resid))
 
-        kw = dict(u_positioning_m=s[:, 2], u_straightness_x_m=u_detrend(s[:, 0]),
-                  u_straightness_y_m=u_detrend(s[:, 1]), u_pitch_rad=s[:, 3],
-                  u_yaw_rad=s[:, 4], u_roll_rad=s[:, 5])
+def series_from_error_map(name, em, with_uncertainty: bool = True) -> ErrorMapSeries:
+    """ErrorMapSeries of a core ``error_map.ErrorMap`` (values, and uncertainties if wanted)."""
+    kw = {}
+    if with_uncertainty:
+        kw = dict(u_positioning_m=em.u_positioning_m, u_straightness_x_m=em.u_straightness_x_m,
+                  u_straightness_y_m=em.u_straightness_y_m, u_pitch_rad=em.u_pitch_rad,
+                  u_yaw_rad=em.u_yaw_rad, u_roll_rad=em.u_roll_rad)
     return ErrorMapSeries(
-        name=str(name), srd_m=srd, positioning_m=m[:, 2] - t,
-        straightness_x_m=resid @ m[:, 0], straightness_y_m=resid @ m[:, 1],
-        pitch_rad=m[:, 3], yaw_rad=m[:, 4], roll_rad=m[:, 5], **kw)
+        name=str(name), srd_m=em.srd_reported_m, positioning_m=em.positioning_m,
+        straightness_x_m=em.straightness_x_m, straightness_y_m=em.straightness_y_m,
+        pitch_rad=em.pitch_rad, yaw_rad=em.yaw_rad, roll_rad=em.roll_rad, **kw)
 
 
 def read_reference_error_map(path, name: str | None = None) -> ErrorMapSeries:

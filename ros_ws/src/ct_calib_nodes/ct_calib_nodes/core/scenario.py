@@ -57,22 +57,9 @@ class CampaignTruth:
         (residuals of a straight-line fit of dx and dy over the travel),
         ``pitch_rad``, ``yaw_rad``, ``roll_rad`` (gamma_X, gamma_Y, gamma_Z).
         """
-        t = self.travel_m
-        a = np.stack([np.ones_like(t), t], axis=1)
+        from .error_map import error_map  # noqa: PLC0415 - the one definition of the error map
 
-        def detrend(y):
-            coef, *_ = np.linalg.lstsq(a, y, rcond=None)
-            return y - a @ coef
-
-        m = self.motions
-        return {
-            "positioning_m": m[:, 2] - t,
-            "straightness_x_m": detrend(m[:, 0]),
-            "straightness_y_m": detrend(m[:, 1]),
-            "pitch_rad": m[:, 3].copy(),
-            "yaw_rad": m[:, 4].copy(),
-            "roll_rad": m[:, 5].copy(),
-        }
+        return {k: v.copy() for k, v in error_map(self.srd_reported_m, self.motions).as_truth_dict().items()}
 
 
 def default_static_truth(srd_reported_m: float = 0.364, sdd_reported_m: float = 1.04821) -> np.ndarray:
