@@ -17,20 +17,15 @@ import time
 
 from metro_msgs.msg import CtGeometry, ErrorMap, SphereObservationArray
 from metro_msgs.srv import TriggerSolve
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 
-from ct_calib_nodes.core.ct_pipeline import (CampaignAccumulator, campaign_error_map, solve_campaign_position,
-                                             static_result_from_estimate)
-from ct_calib_nodes.io import ct_files
-from ct_calib_nodes.io.convert import MessageError
-from ct_calib_nodes.io.observations_msg import frame_observations
+from ct_calib_nodes.core.ct_pipeline import campaign_error_map, solve_campaign_position, static_result_from_estimate
 from ct_calib_nodes.io.results import error_map_msg, estimate_msg, static_from_geometry_msg
-from ct_calib_nodes.nodes.runner import QOS_LATCHED, QOS_RELIABLE_STREAM, run_node
+from ct_calib_nodes.nodes.runner import (CT_FILE_PARAMS, QOS_LATCHED, QOS_RELIABLE_STREAM, ObservationIntake,
+                                         declare_parameters, load_ct_files, run_node)
 
 PARAMS = {
-    "instrument_file": ("", "ct_instrument.yaml; empty = package default [path]"),
-    "reference_object_file": ("", "reference_object.yaml; empty = package default [path]"),
+    **CT_FILE_PARAMS,
     "idle_solve_s": (5.0, "solve the last position when no observation arrived for this long [s]; 0 = never"),
     "min_frames": (1, "fewest frames of a position before it is solved [count]"),
     "loss": ("linear", "least-squares loss: linear, huber, soft_l1, cauchy, arctan"),
@@ -41,19 +36,13 @@ MODES = ("multi", "single")
 class CtErrorMotion(Node):
     def __init__(self):
         super().__init__("ct_error_motion")
-        for name, (default, text) in PARAMS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(description=text))
-        p = {name: self.get_parameter(name).value for name in PARAMS}
-        self.p = p
-        self.instrument = ct_files.load_instrument(p["instrument_file"] or ct_files.default_instrument_path())
-        self.ref = ct_files.load_reference_object(p["reference_object_file"] or ct_files.default_reference_object_path())
-        self.id_to_index = {int(i): k for k, i in enumerate(self.ref.ids)}
-        self.acc = CampaignAccumulator()
+        self.p = declare_parameters(self, PARAMS)
+        self.instrument, self.ref = load_ct_files(self.p)
+        self.intake = ObservationIntake(self, self.ref)
+        self.acc = self.intake.acc
         self.static = None
         self.results = {m: {} for m in MODES}        # mode -> {k: MotionResult}
         self.solved_frames = {m: {} for m in MODES}  # mode -> {k: n_frames at solve}
-        self.bad_messages = 0
-        self.last_rx = None
         self.pubs = {"multi": self.create_publisher(ErrorMap, "/ct/error_map", QOS_LATCHED),
                      "single": self.create_publisher(ErrorMap, "/ct/error_map/single", QOS_LATCHED)}
         self.create_subscription(SphereObservationArray, "/ct/observations", self._on_obs, QOS_RELIABLE_STREAM)
@@ -65,7 +54,7 @@ class CtErrorMotion(Node):
         try:
             w, cov, _geom, code = static_from_geometry_msg(msg, self.ref.centres_of_m)
         except ValueError as exc:
-            self.bad_messages += 1
+            self.intake.bad_messages += 1
             self.get_logger().warning(f"skipped bad /ct/geometry: {exc}")
             return
         if code != 0:
@@ -80,20 +69,12 @@ class CtErrorMotion(Node):
         self._solve_complete(final=False)
 
     def _on_obs(self, msg):
-        try:
-            stamp, alpha, srd, idx, uv, sig, nrej = frame_observations(msg, self.id_to_index)
-            k = self.acc.add_frame(stamp, alpha, srd, idx, uv, sig, nrej)
-        except (MessageError, ValueError) as exc:
-            self.bad_messages += 1
-            self.get_logger().warning(f"skipped bad observation message #{self.bad_messages}: {exc}")
-            return
-        self.last_rx = time.monotonic()
-        if k >= 2 and k == len(self.acc.positions) - 1 and self.acc.positions[k].n_frames == 1:
+        k = self.intake.add(msg)
+        if k is not None and k >= 2 and k == len(self.acc.positions) - 1 and self.acc.positions[k].n_frames == 1:
             self._solve_complete(final=False)      # position k-1 just completed
 
     def _on_timer(self):
-        idle = float(self.p["idle_solve_s"])
-        if idle > 0 and self.last_rx is not None and time.monotonic() - self.last_rx > idle:
+        if self.intake.idle_for(float(self.p["idle_solve_s"])):
             self._solve_complete(final=True)
 
     def _solve_complete(self, final: bool):

@@ -12,22 +12,17 @@ from __future__ import annotations
 
 import time
 
-import numpy as np
 from metro_msgs.msg import CtGeometry, SphereObservationArray
 from metro_msgs.srv import TriggerSolve
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 
-from ct_calib_nodes.core.ct_pipeline import CampaignAccumulator, solve_campaign_static
-from ct_calib_nodes.io import ct_files
-from ct_calib_nodes.io.convert import MessageError
-from ct_calib_nodes.io.observations_msg import frame_observations
+from ct_calib_nodes.core.ct_pipeline import solve_campaign_static
 from ct_calib_nodes.io.results import geometry_msg
-from ct_calib_nodes.nodes.runner import QOS_LATCHED, QOS_RELIABLE_STREAM, run_node
+from ct_calib_nodes.nodes.runner import (CT_FILE_PARAMS, QOS_LATCHED, QOS_RELIABLE_STREAM, ObservationIntake,
+                                         declare_parameters, load_ct_files, run_node)
 
 PARAMS = {
-    "instrument_file": ("", "ct_instrument.yaml (nominal SDD, detector); empty = package default [path]"),
-    "reference_object_file": ("", "reference_object.yaml (calibrated centres); empty = package default [path]"),
+    **CT_FILE_PARAMS,
     "idle_solve_s": (3.0, "solve the first position when no observation arrived for this long [s]; 0 = never"),
     "min_frames": (3, "fewest frames of the first position before a solve is attempted [count]"),
     "loss": ("linear", "least-squares loss: linear, huber, soft_l1, cauchy, arctan"),
@@ -37,17 +32,11 @@ PARAMS = {
 class CtGeometrySolver(Node):
     def __init__(self):
         super().__init__("ct_geometry_solver")
-        for name, (default, text) in PARAMS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(description=text))
-        p = {name: self.get_parameter(name).value for name in PARAMS}
-        self.p = p
-        self.instrument = ct_files.load_instrument(p["instrument_file"] or ct_files.default_instrument_path())
-        self.ref = ct_files.load_reference_object(p["reference_object_file"] or ct_files.default_reference_object_path())
-        self.id_to_index = {int(i): k for k, i in enumerate(self.ref.ids)}
-        self.acc = CampaignAccumulator()
-        self.bad_messages = 0
+        self.p = declare_parameters(self, PARAMS)
+        self.instrument, self.ref = load_ct_files(self.p)
+        self.intake = ObservationIntake(self, self.ref)
+        self.acc = self.intake.acc
         self.solved_n_frames = -1
-        self.last_rx = None
         self.result = None
         self.pub = self.create_publisher(CtGeometry, "/ct/geometry", QOS_LATCHED)
         self.create_subscription(SphereObservationArray, "/ct/observations", self._on_obs, QOS_RELIABLE_STREAM)
@@ -57,21 +46,13 @@ class CtGeometrySolver(Node):
                                f"{self.instrument.detector.cols}x{self.instrument.detector.rows} px)")
 
     def _on_obs(self, msg):
-        try:
-            stamp, alpha, srd, idx, uv, sig, nrej = frame_observations(msg, self.id_to_index)
-            k = self.acc.add_frame(stamp, alpha, srd, idx, uv, sig, nrej)
-        except (MessageError, ValueError) as exc:
-            self.bad_messages += 1
-            self.get_logger().warning(f"skipped bad observation message #{self.bad_messages}: {exc}")
-            return
-        self.last_rx = time.monotonic()
-        if k >= 1 and self.result is None:
+        k = self.intake.add(msg)
+        if k is not None and k >= 1 and self.result is None:
             self._solve("the stage moved to position 2")
 
     def _on_timer(self):
         idle = float(self.p["idle_solve_s"])
-        if (self.result is None and idle > 0 and self.last_rx is not None
-                and time.monotonic() - self.last_rx > idle and self.acc.positions):
+        if self.result is None and self.intake.idle_for(idle) and self.acc.positions:
             self._solve(f"no observations for {idle:.1f} s")
 
     def _solve(self, why: str):

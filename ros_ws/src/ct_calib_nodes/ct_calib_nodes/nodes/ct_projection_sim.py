@@ -14,20 +14,18 @@ import time
 
 import numpy as np
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from sensor_msgs.msg import Image, JointState
 
 from ct_calib_nodes.core.render import RenderSettings, render_projection
 from ct_calib_nodes.core.scenario import default_campaign
-from ct_calib_nodes.io import ct_files
 from ct_calib_nodes.io.convert import image_from_array
 from ct_calib_nodes.io.truth_files import write_reference_error_map, write_truth
-from ct_calib_nodes.nodes.runner import QOS_RELIABLE_STREAM, run_node
+from ct_calib_nodes.nodes.runner import (CT_FILE_PARAMS, QOS_RELIABLE_STREAM, declare_parameters, load_ct_files,
+                                         run_node)
 
 PARAMS = {
-    "instrument_file": ("", "ct_instrument.yaml to simulate; empty = the package default [path]"),
-    "reference_object_file": ("", "reference_object.yaml to simulate; empty = the package default [path]"),
+    **CT_FILE_PARAMS,
     "n_positions": (6, "stage positions along the magnification axis [count]"),
     "srd_first_m": (0.364, "instrument-reported SRD of the first stage position [m]"),
     "step_m": (0.072, "stage step between positions [m]"),
@@ -35,7 +33,7 @@ PARAMS = {
     "rate_hz": (8.0, "frame rate; 0 = as fast as rendering allows [Hz]"),
     "encoding": ("mono16", "frame encoding: mono16 (counts) or 32FC1 (transmission I/I0)"),
     "seed": (20201, "random seed of the photon noise [-]"),
-    "wait_for_subscribers": (1, "start only when /ct/detector/image has this many subscribers [count]"),
+    "wait_for_subscribers": (1, "start only when both raw topics have this many subscribers [count]"),
     "wait_timeout_s": (60.0, "give up waiting for subscribers after this long [s]"),
     "exit_when_done": (True, "end the process after the last frame"),
     "truth_output": ("", "write the simulation truth here (YAML; for tests, never read by solvers) [path]"),
@@ -54,12 +52,8 @@ PARAMS = {
 class CtProjectionSim(Node):
     def __init__(self):
         super().__init__("ct_projection_sim")
-        for name, (default, text) in PARAMS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(description=text))
-        p = {name: self.get_parameter(name).value for name in PARAMS}
-        self.p = p
-        self.instrument = ct_files.load_instrument(p["instrument_file"] or ct_files.default_instrument_path())
-        self.ref = ct_files.load_reference_object(p["reference_object_file"] or ct_files.default_reference_object_path())
+        self.p = p = declare_parameters(self, PARAMS)
+        self.instrument, self.ref = load_ct_files(p)
         if p["encoding"] not in ("mono16", "32FC1"):
             raise ValueError(f"encoding must be mono16 or 32FC1, got {p['encoding']!r}")
         self.truth = default_campaign(int(p["n_positions"]), float(p["step_m"]), float(p["srd_first_m"]),
@@ -95,7 +89,8 @@ class CtProjectionSim(Node):
 
     def _tick(self):
         if self.t_start is None:
-            subs = self.pub_img.get_subscription_count()
+            # both raw topics: a recorder matches them one after the other
+            subs = min(self.pub_img.get_subscription_count(), self.pub_js.get_subscription_count())
             if subs < int(self.p["wait_for_subscribers"]):
                 if time.monotonic() - self.t_wait > float(self.p["wait_timeout_s"]):
                     self.get_logger().error(f"only {subs} subscriber(s) after {self.p['wait_timeout_s']} s; giving up")
@@ -123,8 +118,17 @@ class CtProjectionSim(Node):
         if self.sent == len(self.queue):
             self.get_logger().info(f"campaign complete: {self.sent} frames in {time.monotonic() - self.t_start:.1f} s")
             if self.p["exit_when_done"]:
-                # give DDS a moment to deliver the last reliable samples
-                self.create_timer(2.0, lambda: rclpy.try_shutdown())
+                self._finish()
+
+    def _finish(self):
+        """End the process only once every subscriber acknowledged every frame (reliable QoS):
+        a frame still in flight to a busy subscriber would otherwise die with this process."""
+        from rclpy.duration import Duration  # noqa: PLC0415
+
+        acked = all(pub.wait_for_all_acked(Duration(seconds=60.0)) for pub in (self.pub_img, self.pub_js))
+        if not acked:
+            self.get_logger().warning("some subscribers did not acknowledge every frame within 60 s")
+        rclpy.try_shutdown()
 
 
 def main(args=None):

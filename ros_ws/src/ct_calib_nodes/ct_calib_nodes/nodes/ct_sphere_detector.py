@@ -14,22 +14,20 @@ from __future__ import annotations
 import time
 
 from metro_msgs.msg import CtGeometry, SphereObservationArray
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Image, JointState
 
 from ct_calib_nodes.core.ct_pipeline import FrameProcessor
 from ct_calib_nodes.core.detect import FrameError
-from ct_calib_nodes.io import ct_files
 from ct_calib_nodes.io.convert import MessageError, array_from_image, stage_from_joint_state, stamp_ns
 from ct_calib_nodes.io.observations_out import observation_array_msg
 from ct_calib_nodes.io.results import static_from_geometry_msg
-from ct_calib_nodes.nodes.runner import QOS_LATCHED, QOS_RELIABLE_STREAM, run_node
+from ct_calib_nodes.nodes.runner import (CT_FILE_PARAMS, QOS_LATCHED, QOS_RELIABLE_STREAM, declare_parameters,
+                                         load_ct_files, run_node)
 
 PARAMS = {
-    "instrument_file": ("", "ct_instrument.yaml; empty = package default [path]"),
-    "reference_object_file": ("", "reference_object.yaml; empty = package default [path]"),
+    **CT_FILE_PARAMS,
     "init_frames": (6, "frames used to initialise sphere identity at the first position [count]"),
     "pair_timeout_s": (120.0, "drop an image or stage reading left unpaired this long [s]"),
     "reliable": (True, "reliable subscriptions (complete campaigns); false = sensor-data QoS for best-effort drivers"),
@@ -39,12 +37,8 @@ PARAMS = {
 class CtSphereDetector(Node):
     def __init__(self):
         super().__init__("ct_sphere_detector")
-        for name, (default, text) in PARAMS.items():
-            self.declare_parameter(name, default, ParameterDescriptor(description=text))
-        p = {name: self.get_parameter(name).value for name in PARAMS}
-        self.p = p
-        self.instrument = ct_files.load_instrument(p["instrument_file"] or ct_files.default_instrument_path())
-        self.ref = ct_files.load_reference_object(p["reference_object_file"] or ct_files.default_reference_object_path())
+        self.p = p = declare_parameters(self, PARAMS)
+        self.instrument, self.ref = load_ct_files(p)
         self.proc = FrameProcessor(self.ref, self.instrument.detector, self.instrument.sdd_reported_m,
                                    self.instrument.flat_field_counts, init_frames=int(p["init_frames"]))
         self.images, self.stages = {}, {}     # stamp_ns -> (msg, arrival time)

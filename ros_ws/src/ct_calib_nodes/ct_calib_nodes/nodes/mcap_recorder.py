@@ -25,9 +25,17 @@ import rclpy
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from ct_calib_nodes.io.mcap_io import Rosbag2McapWriter, import_message_type
-from ct_calib_nodes.nodes.runner import run_node
+from ct_calib_nodes.nodes.runner import declare_parameters
 
 IGNORED = {"/rosout", "/parameter_events"}
+DRAIN_QUIET_S = 1.0     # on stop: close once nothing arrived for this long [s]
+DRAIN_MAX_S = 30.0      # on stop: never drain longer than this [s]
+PARAMS = {
+    "output": ("bags/recording.mcap", "MCAP file (.mcap) or rosbag2 directory to create [path]"),
+    "topics": ([""], "topics to record; empty = all"),
+    "discovery_period_s": (0.2, "topic discovery period [s]"),
+    "compression": ("zstd", "MCAP chunk compression: zstd, lz4, none"),
+}
 
 
 def _qos_dict(q: QoSProfile) -> dict:
@@ -41,17 +49,13 @@ def _qos_dict(q: QoSProfile) -> dict:
 class McapRecorder(Node):
     def __init__(self):
         super().__init__("mcap_recorder")
-        self.declare_parameter("output", "bags/recording.mcap",
-                               descriptor=_desc("MCAP file (.mcap) or rosbag2 directory to create [path]"))
-        self.declare_parameter("topics", [""], descriptor=_desc("topics to record; empty = all"))
-        self.declare_parameter("discovery_period_s", 0.2, descriptor=_desc("topic discovery period [s]"))
-        self.declare_parameter("compression", "zstd", descriptor=_desc("MCAP chunk compression: zstd, lz4, none"))
-        output = self.get_parameter("output").value
-        self.wanted = {t for t in self.get_parameter("topics").value if t}
-        comp = self.get_parameter("compression").value
+        p = declare_parameters(self, PARAMS)
+        output = p["output"]
+        self.wanted = {t for t in p["topics"] if t}
+        comp = p["compression"]
         self.writer = Rosbag2McapWriter(output, compression="" if comp == "none" else comp)
         self.subs = {}
-        self.timer = self.create_timer(float(self.get_parameter("discovery_period_s").value), self._discover)
+        self.timer = self.create_timer(float(p["discovery_period_s"]), self._discover)
         self._discover()
         self.get_logger().info(f"recording {sorted(self.wanted) if self.wanted else 'all topics'} to {output}")
 
@@ -89,14 +93,37 @@ class McapRecorder(Node):
         self.get_logger().info(f"wrote {self.writer.message_count} messages to {path}")
 
 
-def _desc(text: str):
-    from rcl_interfaces.msg import ParameterDescriptor  # noqa: PLC0415
-
-    return ParameterDescriptor(description=text)
-
-
 def main(args=None):
-    raise SystemExit(run_node(McapRecorder, args))
+    """Record until SIGINT/SIGTERM, then drain what DDS still holds for us before closing.
+
+    rclpy's own signal handling would shut the context down at once and drop
+    messages still queued behind a slow write (a 2 MB frame being compressed);
+    rosbag2 likewise flushes on stop. So the recorder handles the signals
+    itself: on a stop request it keeps taking messages until none came for
+    ``DRAIN_QUIET_S`` (at most ``DRAIN_MAX_S``), then closes the file.
+    """
+    import signal  # noqa: PLC0415
+    import time  # noqa: PLC0415
+
+    from rclpy.signals import SignalHandlerOptions  # noqa: PLC0415
+
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.append(True))
+    node = McapRecorder()
+    try:
+        while not stop:
+            rclpy.spin_once(node, timeout_sec=0.1)
+        count, t_last, t0 = node.writer.message_count, time.monotonic(), time.monotonic()
+        while time.monotonic() - t_last < DRAIN_QUIET_S and time.monotonic() - t0 < DRAIN_MAX_S:
+            rclpy.spin_once(node, timeout_sec=0.05)
+            if node.writer.message_count != count:
+                count, t_last = node.writer.message_count, time.monotonic()
+    finally:
+        node.close()
+        node.destroy_node()
+        rclpy.try_shutdown()
 
 
 if __name__ == "__main__":

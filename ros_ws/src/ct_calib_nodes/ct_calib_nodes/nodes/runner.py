@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -39,3 +41,62 @@ def run_node(node_factory, args=None) -> int:
             node.destroy_node()
         rclpy.try_shutdown()
     return code
+
+
+# --- pieces every CT node shares -----------------------------------------------------------------
+
+CT_FILE_PARAMS = {
+    "instrument_file": ("", "ct_instrument.yaml (nominal SDD, detector); empty = package default [path]"),
+    "reference_object_file": ("", "reference_object.yaml (calibrated sphere centres); empty = package default [path]"),
+}
+
+
+def declare_parameters(node, params: dict) -> dict:
+    """Declare ``{name: (default, description)}`` on a node; return the values in force."""
+    from rcl_interfaces.msg import ParameterDescriptor  # noqa: PLC0415
+
+    for name, (default, text) in params.items():
+        node.declare_parameter(name, default, ParameterDescriptor(description=text))
+    return {name: node.get_parameter(name).value for name in params}
+
+
+def load_ct_files(p: dict):
+    """(CtInstrument, ReferenceObject) from the CT_FILE_PARAMS values (package defaults when empty)."""
+    from ct_calib_nodes.io import ct_files  # noqa: PLC0415
+
+    instrument = ct_files.load_instrument(p["instrument_file"] or ct_files.default_instrument_path())
+    ref = ct_files.load_reference_object(p["reference_object_file"] or ct_files.default_reference_object_path())
+    return instrument, ref
+
+
+class ObservationIntake:
+    """``/ct/observations`` messages into a CampaignAccumulator; bad messages are logged,
+    counted and skipped."""
+
+    def __init__(self, node, ref):
+        from ct_calib_nodes.core.ct_pipeline import CampaignAccumulator  # noqa: PLC0415
+
+        self.node = node
+        self.acc = CampaignAccumulator()
+        self.id_to_index = {int(i): k for k, i in enumerate(ref.ids)}
+        self.bad_messages = 0
+        self.last_rx = None
+
+    def add(self, msg):
+        """Add one SphereObservationArray; returns its stage-position index, or None if skipped."""
+        from ct_calib_nodes.io.convert import MessageError  # noqa: PLC0415
+        from ct_calib_nodes.io.observations_msg import frame_observations  # noqa: PLC0415
+
+        try:
+            stamp, alpha, srd, idx, uv, sig, nrej = frame_observations(msg, self.id_to_index)
+            k = self.acc.add_frame(stamp, alpha, srd, idx, uv, sig, nrej)
+        except (MessageError, ValueError) as exc:
+            self.bad_messages += 1
+            self.node.get_logger().warning(f"skipped bad observation message #{self.bad_messages}: {exc}")
+            return None
+        self.last_rx = time.monotonic()
+        return k
+
+    def idle_for(self, seconds: float) -> bool:
+        """True when observations came and none arrived for ``seconds``."""
+        return seconds > 0 and self.last_rx is not None and time.monotonic() - self.last_rx > seconds
