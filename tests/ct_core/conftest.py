@@ -14,8 +14,7 @@ from ct_calib_nodes.core.scenario import default_campaign
 from ct_calib_nodes.core.simulate_obs import multi_helix_centres, simulate_observations
 from ct_calib_nodes.core.static_solver import solve_static
 
-SIGMA_PX = 0.05
-N_VIEWS = 360
+from ct_core_settings import N_VIEWS, SIGMA_PX  # noqa: F401 (re-exported for fixtures)
 
 
 @pytest.fixture(scope="session")

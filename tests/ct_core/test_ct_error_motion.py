@@ -9,7 +9,7 @@ from ct_calib_nodes.core.error_map import error_map
 from ct_calib_nodes.core.error_motion import solve_error_motion
 from ct_calib_nodes.core.simulate_obs import simulate_observations
 
-from conftest import SIGMA_PX
+from ct_core_settings import SIGMA_PX
 
 # Same argument as the static tests: estimates ~ Normal(truth, cov) in the
 # linear regime; 4.5 sd per component (6 components x 19 positions x 2 modes:

@@ -6,7 +6,7 @@ import numpy as np
 from ct_calib_nodes.core.simulate_obs import simulate_observations
 from ct_calib_nodes.core.static_solver import solve_static
 
-from conftest import SIGMA_PX
+from ct_core_settings import SIGMA_PX
 
 N_TRIALS = 60
 

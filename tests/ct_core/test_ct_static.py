@@ -10,7 +10,7 @@ from ct_calib_nodes.core.scenario import DEG
 from ct_calib_nodes.core.simulate_obs import simulate_observations
 from ct_calib_nodes.core.static_solver import solve_static
 
-from conftest import SIGMA_PX
+from ct_core_settings import SIGMA_PX
 
 # Tolerance: at 0.05 px the problem is linear over the error scale, so the
 # estimate is ~ Normal(truth, CRLB) with CRLB = sigma^2 (J^T J)^-1 at the

@@ -7,7 +7,7 @@ from ct_calib_nodes.core.simulate_obs import simulate_observations
 from ct_calib_nodes.core.static_solver import solve_static
 from ct_calib_nodes.core.terms import EncoderEccentricity
 
-from conftest import SIGMA_PX
+from ct_core_settings import SIGMA_PX
 
 ECC = np.array([6e-4, -4e-4])   # [rad], about 2 and 1.4 arcmin: 0.1-0.2 px at the object radius
 

@@ -1,6 +1,7 @@
 """The simulated CT cell end to end over DDS (separate node processes), on a small campaign:
 the error map must be recovered within the issue's tolerances and within its own uncertainty."""
 import json
+import pathlib
 import subprocess
 
 import numpy as np
@@ -9,6 +10,7 @@ import pytest
 from ct_calib_nodes.io.mcap_io import ReadReport, iter_recording
 
 pytestmark = pytest.mark.ros
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 # Issue #5 tolerances (multi-projection mode): positioning 10 um, straightness 3 um, pitch and
 # roll 3 arcsec, yaw 5 arcsec.
@@ -17,9 +19,7 @@ TOL = {"positioning_m": 10.0, "straightness_x_m": 3.0, "straightness_y_m": 3.0,
 
 
 def test_ct_campaign_end_to_end(tmp_path):
-    from tests_paths import INSTALL  # noqa: F401 - see conftest
-
-    exe = INSTALL / "ct_calib_nodes" / "lib" / "ct_calib_nodes" / "ct_demo"
+    exe = ROOT / "ros_ws" / "install" / "ct_calib_nodes" / "lib" / "ct_calib_nodes" / "ct_demo"
     res = subprocess.run([str(exe), "--positions", "3", "--projections", "12", "--rate", "10",
                           "--out", str(tmp_path / "out"), "--bags", str(tmp_path / "bags"), "--timeout", "300"],
                          capture_output=True, text=True, timeout=400)
