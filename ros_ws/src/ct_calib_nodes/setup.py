@@ -27,6 +27,7 @@ setup(
             "ct_geometry_solver = ct_calib_nodes.nodes.ct_geometry_solver:main",
             "ct_error_motion = ct_calib_nodes.nodes.ct_error_motion:main",
             "ct_demo = ct_calib_nodes.nodes.ct_demo:main",
+            "ct_offline_solve = ct_calib_nodes.offline:main",
         ],
     },
 )

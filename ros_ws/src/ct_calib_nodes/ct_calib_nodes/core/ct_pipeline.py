@@ -227,16 +227,17 @@ class FrameResult:
 class FrameProcessor:
     """Sphere detection and identity for a stream of CT frames.
 
-    The identity of the first stage position is initialised from the first
-    ``init_frames`` frames (buffered, then released together); afterwards
-    every frame is assigned as it comes. When the reported SRD changes, the
-    prediction follows the nominal travel; ``set_static`` hands over a solved
-    geometry. Deterministic: the same frames in the same order give the same
-    results, live or offline.
+    Identity is initialised afresh at every stage position (a new position
+    starts when the reported SRD changes) from that position's first
+    ``init_frames`` frames, which are buffered and then released together;
+    afterwards every frame is assigned as it comes. Identity therefore depends
+    only on the frames themselves, never on when a solved geometry arrives:
+    the same frames in the same order give the same results, live or offline.
     """
 
     def __init__(self, ref, detector: DetectorSpec, sdd_reported_m: float, flat_field_counts: float,
-                 init_frames: int = 6, detection_settings=None, identify_settings=None):
+                 init_frames: int = 6, detection_settings=None, identify_settings=None,
+                 srd_tolerance_m: float = 1e-5):
         from .identify import SphereIdentifier  # noqa: PLC0415
 
         self.ref = ref
@@ -244,15 +245,16 @@ class FrameProcessor:
         self.sdd = float(sdd_reported_m)
         self.flat = float(flat_field_counts) if flat_field_counts else None
         self.init_frames = max(1, int(init_frames))
+        self.srd_tolerance_m = float(srd_tolerance_m)
         self.detection_settings = detection_settings
-        self.identifier = SphereIdentifier(ref.ids, ref.centres_of_m, ref.diameters_m, detector, self.sdd,
-                                           identify_settings)
-        self._pending = []          # (stamp, alpha, srd, detections) before initialisation
-        self.srd_first = None
+        self.identify_settings = identify_settings
+        self._new_identifier = lambda: SphereIdentifier(ref.ids, ref.centres_of_m, ref.diameters_m, detector,
+                                                        self.sdd, identify_settings)
+        self.identifier = None
+        self._pending = []          # (stamp, alpha, srd, detections) of this position before initialisation
         self.srd_current = None
-        self.static_w = None
         self.n_frames = 0
-        self.n_bad_frames = 0
+        self.init_messages = []     # (srd, message) of every identity initialisation
 
     def diameter_range_px(self, srd_m: float):
         d = self.ref.diameters_m
@@ -267,50 +269,38 @@ class FrameProcessor:
                               expected_shape=(self.detector.rows, self.detector.cols),
                               diameter_px_range=self.diameter_range_px(srd_m), settings=self.detection_settings)
 
-    def set_static(self, static_w):
-        """Use a solved static geometry for the predictions from now on."""
-        self.static_w = np.asarray(static_w, dtype=float)
-        self._move_to(self.srd_current if self.srd_current is not None else self.srd_first)
-
-    def _move_to(self, srd_m):
-        if srd_m is None or not self.identifier.initialised:
-            return
-        travel = float(srd_m - self.srd_first)
-        if self.static_w is not None:
-            self.identifier.update_geometry(self.static_w, travel_m=travel)
-        elif abs(travel) > 0:
-            self.identifier.update_geometry(None, travel_m=travel)
-
     def push(self, stamp_ns: int, image, encoding: str, alpha_rad: float, srd_m: float) -> list:
-        """Process one frame; returns the FrameResults now ready (0, 1, or the buffered batch).
+        """Process one frame; returns the FrameResults now ready (0, 1, or a buffered batch).
 
         Raises detect.FrameError for a frame that cannot be used (the caller logs and skips it).
         """
         det = self.detect(image, encoding, srd_m)      # may raise FrameError
         self.n_frames += 1
-        if self.srd_first is None:
-            self.srd_first = self.srd_current = float(srd_m)
-        if abs(srd_m - self.srd_current) > 1e-5:
+        out = []
+        if self.srd_current is None or abs(srd_m - self.srd_current) > self.srd_tolerance_m:
+            out += self.flush()                        # the previous position ends here
             self.srd_current = float(srd_m)
-            self._move_to(self.srd_current)
-        if not self.identifier.initialised:
-            self._pending.append((int(stamp_ns), float(alpha_rad), float(srd_m), det))
-            if len(self._pending) < self.init_frames:
-                return []
-            init = self.identifier.initialise([p[3].centre_px for p in self._pending],
-                                              [p[1] for p in self._pending], self._pending[0][2])
-            if not init.success:
-                # keep the oldest frames out so the next attempt sees a new set
-                self._pending.pop(0)
-                return []
-            out = [self._assign(*p) for p in self._pending]
-            self._pending = []
-            return out
-        return [self._assign(int(stamp_ns), float(alpha_rad), float(srd_m), det)]
+            self.identifier = self._new_identifier()
+        if self.identifier.initialised:
+            return out + [self._assign(int(stamp_ns), float(alpha_rad), float(srd_m), det)]
+        self._pending.append((int(stamp_ns), float(alpha_rad), float(srd_m), det))
+        if len(self._pending) >= self.init_frames:
+            out += self._try_initialise(final=False)
+        return out
 
     def flush(self) -> list:
-        """Frames still buffered (identity never initialised): returned as all-rejected."""
-        out = [self._assign(*p) for p in self._pending]
+        """Release the frames still buffered (end of a position or of the stream): identity is
+        initialised from however many there are, or they come out rejected."""
+        return self._try_initialise(final=True) if self._pending else []
+
+    def _try_initialise(self, final: bool) -> list:
+        p = self._pending
+        init = self.identifier.initialise([f[3].centre_px for f in p], [f[1] for f in p], p[0][2])
+        self.init_messages.append((p[0][2], init.message))
+        if not init.success and not final:
+            p.pop(0)                # try again with a newer set of frames
+            return []
+        out = [self._assign(*f) for f in p]   # not initialised -> every detection rejected with a reason
         self._pending = []
         return out
 

@@ -156,9 +156,8 @@ def main(argv=None):
 
 def write_outputs(out: pathlib.Path, latest: dict, wall_s: float, bag, bag_mb: float) -> pathlib.Path:
     """Report, geometry export and recovered-vs-truth table from the published results."""
-    from ct_calib_nodes.core import report as rep  # noqa: PLC0415
-    from ct_calib_nodes.core.export import export_geometry_files  # noqa: PLC0415
     from ct_calib_nodes.io import ct_files  # noqa: PLC0415
+    from ct_calib_nodes.io.campaign_outputs import series_from_error_map_msg, write_report_and_export  # noqa: PLC0415
     from ct_calib_nodes.io.results import static_from_geometry_msg, write_json_atomic  # noqa: PLC0415
     from ct_calib_nodes.io.truth_files import read_truth  # noqa: PLC0415
 
@@ -167,28 +166,16 @@ def write_outputs(out: pathlib.Path, latest: dict, wall_s: float, bag, bag_mb: f
     g = latest["geometry"]
     w, cov, geom, _code = static_from_geometry_msg(g, ref.centres_of_m)
     est = g.static_estimate
-    series = []
-    for mode in ("multi", "single"):
-        m = latest[mode]
-        a = lambda f: np.asarray(getattr(m, f), dtype=float)  # noqa: E731
-        series.append(rep.ErrorMapSeries(
-            name=mode, srd_m=a("srd_reported_m"), positioning_m=a("positioning_m"),
-            straightness_x_m=a("straightness_x_m"), straightness_y_m=a("straightness_y_m"),
-            pitch_rad=a("pitch_rad"), yaw_rad=a("yaw_rad"), roll_rad=a("roll_rad"),
-            u_positioning_m=a("u_positioning_m"), u_straightness_x_m=a("u_straightness_x_m"),
-            u_straightness_y_m=a("u_straightness_y_m"), u_pitch_rad=a("u_pitch_rad"),
-            u_yaw_rad=a("u_yaw_rad"), u_roll_rad=a("u_roll_rad")))
-    reference = rep.read_reference_error_map(out / "reference_error_map.csv", name="simulated reference (truth)")
-    table = rep.ParameterTable.from_covariance(list(est.names), list(est.units), np.asarray(est.values),
-                                              cov, title="Static geometry at the first stage position")
+    series = [series_from_error_map_msg(latest[mode], mode) for mode in ("multi", "single")]
+    motions = np.array([[0.0] * 6] + [list(e.values) for e in latest["multi"].motions])
     meta = {"recording": f"{bag} ({bag_mb:.0f} MB)", "campaign wall time": f"{wall_s:.0f} s",
             "static solve": f"{est.status.message}; rms {est.status.rms_residual:.4f} px; "
-                            f"{est.status.observations // 2} centres; {est.status.rejected} rejected detections"}
-    index = rep.write_report(out / "report", series, reference=reference, params_table=table, meta=meta)
-    motions = np.array([[0.0] * 6] + [list(e.values) for e in latest["multi"].motions])
-    alphas = 2 * np.pi * np.arange(360) / 360
-    export_geometry_files(out / "geometry_export", geom, motions, alphas, inst.detector,
-                          srd_reported_m=np.asarray(latest["multi"].srd_reported_m))
+                            f"{est.status.observations // 2} centres; {est.status.rejected} rejected detections",
+            "reference": "the simulator's true error map (a simulated independent measurement)"}
+    index = write_report_and_export(out, names=est.names, units=est.units, values=est.values, covariance=cov,
+                                    geometry=geom, series=series, motions=motions,
+                                    srd_reported_m=latest["multi"].srd_reported_m, detector=inst.detector,
+                                    reference_path=out / "reference_error_map.csv", meta=meta)
 
     truth = read_truth(out / "simulation_truth.yaml")
     tem = truth.error_map()

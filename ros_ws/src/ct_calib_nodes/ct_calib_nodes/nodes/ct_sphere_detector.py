@@ -4,8 +4,9 @@ Subscribes ``/ct/detector/image`` and ``/ct/stage/joint_states`` and pairs them
 by identical ``header.stamp`` (never by arrival order). Each pair goes through
 core detection and identity (ct_pipeline.FrameProcessor); the result, accepted
 and rejected spheres with reasons, is published on ``/ct/observations``
-(metro_msgs/SphereObservationArray, same stamp as the frame). A solved static
-geometry on ``/ct/geometry`` improves the identity predictions. Bad frames and
+(metro_msgs/SphereObservationArray, same stamp as the frame). Identity is
+initialised from the frames of each stage position themselves (the first
+``init_frames`` of a position are published together once it is). Bad frames and
 unpaired messages are logged, counted and skipped; the node keeps running.
 """
 
@@ -13,7 +14,7 @@ from __future__ import annotations
 
 import time
 
-from metro_msgs.msg import CtGeometry, SphereObservationArray
+from metro_msgs.msg import SphereObservationArray
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Image, JointState
@@ -22,13 +23,12 @@ from ct_calib_nodes.core.ct_pipeline import FrameProcessor
 from ct_calib_nodes.core.detect import FrameError
 from ct_calib_nodes.io.convert import MessageError, array_from_image, stage_from_joint_state, stamp_ns
 from ct_calib_nodes.io.observations_out import observation_array_msg
-from ct_calib_nodes.io.results import static_from_geometry_msg
-from ct_calib_nodes.nodes.runner import (CT_FILE_PARAMS, QOS_LATCHED, QOS_RELIABLE_STREAM, declare_parameters,
+from ct_calib_nodes.nodes.runner import (CT_FILE_PARAMS, QOS_RELIABLE_STREAM, declare_parameters,
                                          load_ct_files, run_node)
 
 PARAMS = {
     **CT_FILE_PARAMS,
-    "init_frames": (6, "frames used to initialise sphere identity at the first position [count]"),
+    "init_frames": (6, "frames used to initialise sphere identity at each stage position [count]"),
     "pair_timeout_s": (120.0, "drop an image or stage reading left unpaired this long [s]"),
     "reliable": (True, "reliable subscriptions (complete campaigns); false = sensor-data QoS for best-effort drivers"),
 }
@@ -47,7 +47,6 @@ class CtSphereDetector(Node):
         self.pub = self.create_publisher(SphereObservationArray, "/ct/observations", QOS_RELIABLE_STREAM)
         self.create_subscription(Image, "/ct/detector/image", self._on_image, qos)
         self.create_subscription(JointState, "/ct/stage/joint_states", self._on_stage, qos)
-        self.create_subscription(CtGeometry, "/ct/geometry", self._on_geometry, QOS_LATCHED)
         self.create_timer(1.0, self._expire)
 
     def _on_image(self, msg):
@@ -90,16 +89,6 @@ class CtSphereDetector(Node):
             n_ok = int((fr.flag == 0).sum())
             self.get_logger().info(f"{self.counts['published']} frames published; last: {n_ok} accepted, "
                                    f"{len(fr.flag) - n_ok} rejected; counts {self.counts}")
-
-    def _on_geometry(self, msg):
-        try:
-            w, _cov, _g, code = static_from_geometry_msg(msg, self.ref.centres_of_m)
-        except ValueError as exc:
-            self.get_logger().warning(f"ignored bad /ct/geometry: {exc}")
-            return
-        if code == 0:
-            self.proc.set_static(w)
-            self.get_logger().info("identity predictions now use the solved static geometry")
 
     def _expire(self):
         now, limit = time.monotonic(), float(self.p["pair_timeout_s"])

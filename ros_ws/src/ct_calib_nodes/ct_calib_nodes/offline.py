@@ -1,0 +1,288 @@
+"""Offline CT calibration from a recording, without DDS: the same core as the live nodes.
+
+    ct_offline_solve RECORDING --instrument ct_instrument.yaml --reference-object reference_object.yaml
+                     [--out DIR] [--reference-error-map FILE] [--init-frames 6] [--loss linear]
+
+RECORDING is one ``.mcap`` file or a rosbag2 directory that follows INTERFACES.md
+(``/ct/detector/image`` + ``/ct/stage/joint_states`` paired by stamp). Without
+``--instrument`` / ``--reference-object`` the files are looked for beside the
+recording, then the package defaults are used (and the choice is printed).
+
+Frames go through ct_pipeline.FrameProcessor (detection + identity) and
+CampaignAccumulator in the order their pairs complete, exactly as in the
+sphere-detector node; the static geometry and the error motions are solved with
+the functions the solver nodes call, and the error-motion solves start from the
+static estimate as the node receives it. Live and offline results on the same
+recording therefore agree to numerical precision.
+
+Writes to ``--out`` (default: ``<recording>_calibration``): ``results.json`` (all
+estimates with names, units, covariances, status), ``results.mcap`` (the result
+topics /ct/observations, /ct/geometry, /ct/error_map, /ct/error_map/single),
+``report/`` and ``geometry_export/``. Every file is written to a temporary name
+and renamed, so existing good results are never replaced by partial ones; nothing
+is written when nothing usable came out.
+
+Exit status: 0 results written (possibly from a partly readable recording: the
+problems are printed); 1 nothing usable; 2 bad arguments or files.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ct_calib_nodes.core.ct_pipeline import (CampaignAccumulator, FrameProcessor, campaign_error_map,
+                                             solve_campaign_position, solve_campaign_static,
+                                             static_result_from_estimate)
+from ct_calib_nodes.core.detect import FrameError
+from ct_calib_nodes.io import ct_files
+from ct_calib_nodes.io.convert import MessageError, array_from_image, stage_from_joint_state, stamp_ns
+from ct_calib_nodes.io.mcap_io import ReadReport, iter_recording
+
+IMAGE, STAGE = "/ct/detector/image", "/ct/stage/joint_states"
+MODES = ("multi", "single")
+
+
+@dataclass
+class OfflineResult:
+    """Everything an offline solve produced."""
+
+    static: object = None                       # StaticResult
+    motions: dict = field(default_factory=dict)  # mode -> {k: MotionResult}
+    maps: dict = field(default_factory=dict)     # mode -> (ErrorMap, ks)
+    frames: list = field(default_factory=list)   # FrameResult per processed frame, in order
+    acc: CampaignAccumulator | None = None
+    read_report: ReadReport | None = None
+    counts: dict = field(default_factory=dict)
+    problems: list = field(default_factory=list)
+
+
+def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: str = "linear",
+                    progress=None) -> OfflineResult:
+    """Replay a recording through detection, identity and the solvers (no files written)."""
+    say = progress or (lambda _m: None)
+    out = OfflineResult(read_report=ReadReport(), acc=CampaignAccumulator())
+    counts = {"images": 0, "stage_readings": 0, "frames": 0, "bad_frames": 0, "bad_stage": 0, "unpaired": 0}
+    proc = FrameProcessor(ref, instrument.detector, instrument.sdd_reported_m, instrument.flat_field_counts,
+                          init_frames=init_frames)
+    images, stages = {}, {}
+    t0 = time.monotonic()
+
+    def take(results):
+        for fr in results:
+            out.frames.append(fr)
+            ids, uv, sig = fr.accepted()
+            idx = np.searchsorted(ref.ids, ids) if len(ids) else np.zeros(0, np.int64)
+            out.acc.add_frame(fr.stamp_ns, fr.alpha_rad, fr.srd_reported_m, idx, uv, sig,
+                              int(np.count_nonzero(fr.flag)))
+
+    def pair(t):
+        if t not in images or t not in stages:
+            return
+        img, js = images.pop(t), stages.pop(t)
+        counts["frames"] += 1
+        try:
+            alpha, srd = stage_from_joint_state(js)
+        except MessageError as exc:
+            counts["bad_stage"] += 1
+            out.problems.append(f"frame {t} ns: bad stage reading: {exc}")
+            return
+        try:
+            image, enc = array_from_image(img, (instrument.detector.rows, instrument.detector.cols))
+            take(proc.push(t, image, enc, alpha, srd))
+        except (MessageError, FrameError) as exc:
+            counts["bad_frames"] += 1
+            out.problems.append(f"frame {t} ns: skipped: {exc}")
+        if counts["frames"] % 25 == 0:
+            rate = counts["frames"] / max(time.monotonic() - t0, 1e-9)
+            say(f"{counts['frames']} frames ({rate:.1f}/s), {len(out.acc.positions)} stage position(s)")
+
+    for m in iter_recording(recording, topics=(IMAGE, STAGE), report=out.read_report):
+        t = stamp_ns(m.msg.header.stamp)
+        if m.topic == IMAGE:
+            counts["images"] += 1
+            images[t] = m.msg
+        else:
+            counts["stage_readings"] += 1
+            stages[t] = m.msg
+        pair(t)
+    take(proc.flush())
+    counts["unpaired"] = len(images) + len(stages)
+    if counts["unpaired"]:
+        out.problems.append(f"{len(images)} image(s) and {len(stages)} stage reading(s) without a partner")
+    out.counts = counts
+    out.problems += out.read_report.errors
+    say(f"{counts['frames']} frames in {time.monotonic() - t0:.1f} s; "
+        f"observations per position {[p.n_obs for p in out.acc.positions]}")
+    if not out.acc.positions or out.acc.positions[0].n_frames < 3:
+        out.problems.append("fewer than 3 usable frames at the first stage position: nothing to solve")
+        return out
+
+    out.static = solve_campaign_static(out.acc, ref.centres_of_m, instrument.detector,
+                                       instrument.sdd_reported_m, loss=loss)
+    say(f"static geometry: {out.static.message}; rms {out.static.rms_px:.4f} px")
+    if not out.static.success:
+        out.problems.append(f"static geometry not usable: {out.static.message}")
+        return out
+    # the error-motion node receives the static estimate as published: start from the same thing
+    published = static_result_from_estimate(out.static.x, out.static.covariance, ref.centres_of_m,
+                                            rms_px=out.static.rms_px)
+    for mode in MODES:
+        out.motions[mode] = {}
+        for k in range(1, len(out.acc.positions)):
+            try:
+                out.motions[mode][k] = solve_campaign_position(out.acc, k, published, instrument.detector,
+                                                               mode=mode, loss=loss)
+            except ValueError as exc:
+                out.problems.append(f"position {k + 1} ({mode}): {exc}")
+        if out.motions[mode]:
+            out.maps[mode] = campaign_error_map(out.acc, out.motions[mode], published)
+    say(f"error motions solved at {len(out.motions.get('multi', {}))} position(s)")
+    return out
+
+
+def _result_dict(res, instrument, ref, recording, files) -> dict:
+    from ct_calib_nodes.core.geometry import MOTION_PARAM_UNITS  # noqa: PLC0415
+
+    d = {"recording": str(recording), "files": {k: str(v) for k, v in files.items()},
+         "units": "SI (m, rad); covariance in products of the parameter units",
+         "counts": res.counts, "problems": res.problems,
+         "stage_positions": [{"index": k, "srd_reported_m": p.srd_reported_m, "frames": p.n_frames,
+                              "observations": p.n_obs, "rejected_detections": p.n_rejected}
+                             for k, p in enumerate(res.acc.positions)],
+         "static": res.static.to_dict() if res.static is not None else None, "error_motions": {}, "error_maps": {}}
+    for mode, by_k in res.motions.items():
+        d["error_motions"][mode] = {str(k): dict(r.to_dict(), units=list(MOTION_PARAM_UNITS))
+                                    for k, r in sorted(by_k.items())}
+    for mode, (em, ks) in res.maps.items():
+        d["error_maps"][mode] = dict(em.to_dict(), positions=ks)
+    return d
+
+
+def _write_result_mcap(path, res, instrument):
+    """The result topics, as the live graph publishes them."""
+    from builtin_interfaces.msg import Time  # noqa: PLC0415
+
+    from ct_calib_nodes.io.mcap_io import QOS_RELIABLE_LATCHED, Rosbag2McapWriter  # noqa: PLC0415
+    from ct_calib_nodes.io.observations_out import observation_array_msg  # noqa: PLC0415
+    from ct_calib_nodes.io.results import error_map_msg, estimate_msg, geometry_msg  # noqa: PLC0415
+
+    def stamp(ns):
+        return Time(sec=int(ns) // 1_000_000_000, nanosec=int(ns) % 1_000_000_000)
+
+    last = max(fr.stamp_ns for fr in res.frames)
+    with Rosbag2McapWriter(path) as w:
+        w.add_topic("/ct/observations", "metro_msgs/msg/SphereObservationArray")
+        for fr in res.frames:
+            w.write("/ct/observations", observation_array_msg(fr, stamp(fr.stamp_ns), instrument.detector), fr.stamp_ns)
+        w.add_topic("/ct/geometry", "metro_msgs/msg/CtGeometry", QOS_RELIABLE_LATCHED)
+        p0 = res.acc.positions[0]
+        w.write("/ct/geometry", geometry_msg(res.static, p0.srd_reported_m, instrument.sdd_reported_m,
+                                             instrument.detector, stamp(last), n_rejected=p0.n_rejected), last)
+        for mode, topic in (("multi", "/ct/error_map"), ("single", "/ct/error_map/single")):
+            if mode not in res.maps:
+                continue
+            em, ks = res.maps[mode]
+            motions = [estimate_msg(res.motions[mode][k], f"ct_error_motion/{mode}", stamp(last)) for k in ks[1:]]
+            w.add_topic(topic, "metro_msgs/msg/ErrorMap", QOS_RELIABLE_LATCHED)
+            w.write(topic, error_map_msg(em, mode, motions, stamp(last)), last)
+
+
+def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files, reference_path=None):
+    """Write everything into a temporary directory, then move each file into out_dir."""
+    from ct_calib_nodes.core import report as rep  # noqa: PLC0415
+    from ct_calib_nodes.io.campaign_outputs import write_report_and_export  # noqa: PLC0415
+    from ct_calib_nodes.io.results import write_json_atomic  # noqa: PLC0415
+
+    out_dir = pathlib.Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix=".partial_", dir=out_dir))
+    try:
+        write_json_atomic(tmp / "results.json", _result_dict(res, instrument, ref, recording, files))
+        _write_result_mcap(tmp / "results.mcap", res, instrument)
+        if "multi" in res.maps:
+            series = [rep.series_from_error_map(mode, res.maps[mode][0]) for mode in MODES if mode in res.maps]
+            em, ks = res.maps["multi"]
+            motions = np.zeros((len(ks), 6))
+            for i, k in enumerate(ks[1:], start=1):
+                motions[i] = res.motions["multi"][k].x
+            obs0 = res.acc.positions[0].observations()
+            resid = rep.ReprojectionResiduals(res.static.residuals_px, obs0.view_index, obs0.sphere_index,
+                                              label="static solve, first stage position")
+            s = res.static
+            write_report_and_export(
+                tmp, names=s.names, units=s.units, values=s.x, covariance=s.covariance, geometry=s.geometry,
+                series=series, motions=motions, srd_reported_m=em.srd_reported_m, detector=instrument.detector,
+                reference_path=reference_path, residuals=resid,
+                meta={"recording": str(recording), "instrument file": str(files["instrument"]),
+                      "reference object file": str(files["reference_object"]),
+                      "frames": res.counts.get("frames"), "problems": len(res.problems)})
+        for item in sorted(tmp.iterdir()):
+            dest = out_dir / item.name
+            if dest.is_dir():
+                shutil.rmtree(dest)
+            item.replace(dest)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return out_dir
+
+
+def _find_file(given, recording: pathlib.Path, name: str, default):
+    if given:
+        return pathlib.Path(given), "given"
+    base = recording if recording.is_dir() else recording.parent
+    if (base / name).is_file():
+        return base / name, "found beside the recording"
+    return default(), "package default (no file beside the recording)"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    ap.add_argument("recording", help=".mcap file or rosbag2 directory")
+    ap.add_argument("--instrument", help="ct_instrument.yaml")
+    ap.add_argument("--reference-object", help="reference_object.yaml")
+    ap.add_argument("--reference-error-map", help="independent reference error map (CSV/YAML) for delta plots")
+    ap.add_argument("--out", help="output directory (default <recording>_calibration)")
+    ap.add_argument("--init-frames", type=int, default=6, help="frames used to initialise sphere identity")
+    ap.add_argument("--loss", default="linear", help="least-squares loss: linear, huber, soft_l1, cauchy, arctan")
+    args = ap.parse_args(argv)
+    rec = pathlib.Path(args.recording)
+    if not rec.exists():
+        print(f"ct_offline_solve: no recording at {rec}", file=sys.stderr)
+        return 2
+    try:
+        inst_path, how_i = _find_file(args.instrument, rec, "ct_instrument.yaml", ct_files.default_instrument_path)
+        ref_path, how_r = _find_file(args.reference_object, rec, "reference_object.yaml",
+                                     ct_files.default_reference_object_path)
+        instrument = ct_files.load_instrument(inst_path)
+        ref = ct_files.load_reference_object(ref_path)
+    except ct_files.CtFileError as exc:
+        print(f"ct_offline_solve: {exc}", file=sys.stderr)
+        return 2
+    print(f"[offline] instrument file {inst_path} ({how_i}); reference object {ref_path} ({how_r})")
+    out_dir = pathlib.Path(args.out) if args.out else rec.parent / f"{rec.stem}_calibration"
+    res = solve_recording(rec, instrument, ref, init_frames=args.init_frames, loss=args.loss,
+                          progress=lambda m: print(f"[offline] {m}", flush=True))
+    for p in res.problems[:20]:
+        print(f"[offline] problem: {p}")
+    if len(res.problems) > 20:
+        print(f"[offline] ... and {len(res.problems) - 20} more problems (all in results.json)")
+    if res.static is None or not res.static.success:
+        print("[offline] nothing usable: no results written")
+        return 1
+    write_outputs(out_dir, res, instrument, ref, rec, {"instrument": inst_path, "reference_object": ref_path},
+                  reference_path=args.reference_error_map)
+    print(f"[offline] results: {out_dir / 'results.json'}; report: {out_dir / 'report' / 'index.html'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
