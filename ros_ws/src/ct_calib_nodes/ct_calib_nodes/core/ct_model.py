@@ -49,6 +49,11 @@ def _drot_z(a):
     return np.array([[-s, -c, 0.0], [c, -s, 0.0], [0.0, 0.0, 0.0]])
 
 
+def _cross3(a, b):
+    """Cross product of two 3-vectors (np.cross has a large fixed overhead)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
 def param_names(terms=()) -> tuple:
     """Names of the static parameter vector ``x`` with the given terms."""
     return STATIC_PARAM_NAMES + tuple(n for t in check_terms(terms) for n in t.param_names)
@@ -118,6 +123,218 @@ def _to_pixels(xy, jac_xy, detector: DetectorSpec, want_jac):
 
 
 # --------------------------------------------------------------------------- static model
+class StaticKernel:
+    """The static model (eqs 1-3, App. A) precomputed for one observation set.
+
+    This is the one implementation of the static model: :func:`static_predict`,
+    :func:`static_residuals` and :func:`static_residuals_jac` call it, and the
+    static solver uses it directly. Everything that does not depend on the
+    parameters is computed once (cos/sin of the reported angles when there is
+    no "angle" term, the calibrated centre of each observation, the observed
+    coordinates), and the Jacobian is built lazily from the forward pass's
+    intermediates, so a rejected LM step costs one forward pass and an
+    accepted one does not repeat it.
+
+    Layout (BLOCKED, unlike the interleaved public functions): residuals
+    ``[u_1 .. u_Q, v_1 .. v_Q]`` (2Q,) [px] and the Jacobian as the
+    C-contiguous transpose ``K`` (n, 2Q) [px per parameter unit], so that
+    ``J^T J = K K^T`` is one BLAS product over contiguous rows.
+
+    Derivatives in closed form (rotation derivatives as cross products): with
+    ``R = Rz(eta) Ry(phi) Rx(theta)`` and ``g = R^T p`` the point in {DF}
+    axes, ``dg = g x omega`` for ``dR = R [omega]_x`` (omega = e_x, Rx^T e_y,
+    R^T e_z); with ``r = g_xy / g_z`` the image point ``h_z r - h_xy``
+    (h = R^T D) then has derivatives that are polynomials in r_x, r_y. The
+    object rotation ``Ry Rz Rx(rho)`` gives ``dC = omega x (R_obj C)``
+    (omega = R_obj e_x, e_y, Ry e_z).
+
+    Parameters
+    ----------
+    obs : CentreObservations
+    centres_of_m : ndarray of shape (N, 3)
+        Sphere centres in {OF} [m].
+    detector : DetectorSpec
+    terms : sequence of Term
+    """
+
+    def __init__(self, obs: CentreObservations, centres_of_m, detector: DetectorSpec, terms=()):
+        self.terms = check_terms(terms)
+        self.n = 13 + sum(t.n_params for t in self.terms)
+        c = np.asarray(centres_of_m, dtype=float)
+        if c.ndim != 2 or c.shape[1] != 3:
+            raise ValueError(f"centres_of_m must have shape (N, 3), got {c.shape}")
+        obs.check_spheres(len(c))
+        self.obs = obs
+        self.detector = detector
+        self.q = obs.n_obs
+        self.centres_q = np.ascontiguousarray(c[obs.sphere_index].T)      # (3, Q)
+        self.has_angle = any(t.stage == "angle" for t in self.terms)
+        self.has_image = any(t.stage == "image" for t in self.terms)
+        if not self.has_angle:
+            self._ca, self._sa = np.cos(obs.alpha_rad), np.sin(obs.alpha_rad)
+        self.c0, self.r0 = detector.centre_px
+        self.pitch = detector.pixel_pitch_m
+        self.observed = np.concatenate([obs.uv_px[:, 0], obs.uv_px[:, 1]])  # (2Q,) blocked
+
+    # ------------------------------------------------------------------ layout helpers
+    def interleave(self, r_blocked):
+        """Blocked (2Q,) -> interleaved (2Q,) ``[u_1, v_1, u_2, ...]``."""
+        return np.asarray(r_blocked).reshape(2, -1).T.ravel()
+
+    def blocked_weights(self, per_obs):
+        """Per-observation values (Q,) repeated for u and v in blocked order (2Q,)."""
+        return np.concatenate([per_obs, per_obs])
+
+    # ------------------------------------------------------------------ evaluation
+    def evaluate(self, x):
+        """Residuals and a lazy Jacobian at ``x``.
+
+        Parameters
+        ----------
+        x : array_like of shape (n,)
+
+        Returns
+        -------
+        r : ndarray of shape (2Q,)
+            modelled - observed [px], blocked.
+        jac : callable
+            ``jac()`` returns K, shape (n, 2Q): d r / d x (transposed, blocked).
+        """
+        x = _check_x(x, self.terms)
+        st = self._forward(x)
+        return st["r"], (lambda: self._jacobian(st))
+
+    def residuals(self, x):
+        """modelled - observed, blocked (2Q,) [px]."""
+        return self._forward(_check_x(x, self.terms))["r"]
+
+    def _forward(self, x):
+        terms, q = self.terms, self.q
+        tpar = _split_terms(x, terms)
+        w = x[:13]
+        z_r = w[0]
+        if self.has_angle:
+            alpha, a_derivs = _angle_stage(self.obs.alpha_rad, tpar, terms, self.obs, self.n, 13)
+            ca, sa = np.cos(alpha), np.sin(alpha)
+        else:
+            ca, sa, a_derivs = self._ca, self._sa, []
+        b = object_rotation(w[10], w[11], w[12]) @ self.centres_q          # (3, Q) eq. 1 without P
+        ax = b[0] + w[7]
+        az = b[2] + (w[9] - z_r)
+        p = np.empty((3, q))                                               # eq. 2
+        np.multiply(ca, ax, out=p[0])
+        p[0] += sa * az
+        p[1] = b[1] + w[8]
+        np.multiply(ca, az, out=p[2])
+        p[2] -= sa * ax
+        p[2] += z_r
+        rdet = detector_rotation(w[4], w[5], w[6])
+        rd = rdet.T                                                        # rows: u, v, n axes
+        g = rd @ p                                                         # point in {DF} axes, from source
+        h = rd @ w[1:4]                                                    # R^T D
+        inv = 1.0 / g[2]
+        rx = g[0] * inv
+        ry = g[1] * inv
+        r = np.empty(2 * q)
+        xy = None
+        if self.has_image:
+            xy = np.empty((q, 2))
+            xy[:, 0] = h[2] * rx - h[0]                                    # App. A, in {DF} [m]
+            xy[:, 1] = h[2] * ry - h[1]
+            xy_t = _image_stage(xy, None, tpar, terms, self.obs, 13, False)
+            np.multiply(xy_t[:, 0], 1.0 / self.pitch, out=r[:q])
+            np.multiply(xy_t[:, 1], -1.0 / self.pitch, out=r[q:])
+            r[:q] += self.c0
+            r[q:] += self.r0
+        else:
+            np.multiply(rx, h[2] / self.pitch, out=r[:q])
+            r[:q] += self.c0 - h[0] / self.pitch
+            np.multiply(ry, -h[2] / self.pitch, out=r[q:])
+            r[q:] += self.r0 + h[1] / self.pitch
+        r -= self.observed
+        return dict(x=x, w=w, tpar=tpar, ca=ca, sa=sa, a_derivs=a_derivs, b=b, p=p, rdet=rdet, h=h,
+                    inv=inv, rx=rx, ry=ry, xy=xy, r=r)
+
+    def _jacobian(self, st):
+        q, n = self.q, self.n
+        w, ca, sa, rx, ry, h = st["w"], st["ca"], st["sa"], st["rx"], st["ry"], st["h"]
+        rdet = st["rdet"]
+        rd = rdet.T
+        if self.has_image:
+            su = sv = 1.0              # metric first: image terms chain through xy, pixels last
+        else:
+            su, sv = 1.0 / self.pitch, -1.0 / self.pitch
+        jac = np.empty((n, 2 * q))
+        jac[13:] = 0.0
+        ju, jv = jac[:, :q], jac[:, q:]
+        # D (1..3) and detector angles (4..6): polynomials in (rx, ry), one small product each
+        basis = np.empty((6, q))
+        np.multiply(rx, ry, out=basis[0])
+        np.multiply(rx, rx, out=basis[1])
+        np.multiply(ry, ry, out=basis[2])
+        basis[3] = rx
+        basis[4] = ry
+        basis[5] = 1.0
+        th = w[4]
+        omegas = (np.array([1.0, 0.0, 0.0]), np.array([0.0, np.cos(th), -np.sin(th)]), rdet[2].copy())
+        cu = np.zeros((6, 6))
+        cv = np.zeros((6, 6))
+        for j in range(3):             # x = h_z r_x - h_x, h = R^T D: dx/dD_j = rd[2,j] r_x - rd[0,j]
+            cu[j, 3], cu[j, 5] = rd[2, j], -rd[0, j]
+            cv[j, 4], cv[j, 5] = rd[2, j], -rd[1, j]
+        for j, om in enumerate(omegas):
+            dh = _cross3(h, om)        # d h / d angle
+            # dg = g x om; (dx/dg) . dg = h_z (rx ry, -(1 + rx^2), ry) . om
+            cu[3 + j] = h[2] * np.array([om[0], -om[1], 0.0, dh[2] / h[2], om[2], -om[1] - dh[0] / h[2]])
+            # y: h_z (1 + ry^2, -rx ry, -rx) . om, plus ry dh_z - dh_y
+            cv[3 + j] = h[2] * np.array([-om[1], 0.0, om[0], -om[2], dh[2] / h[2], om[0] - dh[1] / h[2]])
+        np.matmul(cu * su, basis, out=ju[1:7])
+        np.matmul(cv * sv, basis, out=jv[1:7])
+        # d(x, y)/dp: mx_j = k (rd[0,j] - rx rd[2,j]), k = h_z / g_z; object position rows = Ry(alpha)^T m
+        ku = (h[2] * su) * st["inv"]
+        kv = (h[2] * sv) * st["inv"]
+        kur = ku * rx
+        kvr = kv * ry
+        mx0 = rd[0, 0] * ku - rd[2, 0] * kur
+        mx2 = rd[0, 2] * ku - rd[2, 2] * kur
+        my0 = rd[1, 0] * kv - rd[2, 0] * kvr
+        my2 = rd[1, 2] * kv - rd[2, 2] * kvr
+        b = st["b"]
+        cr = np.empty((3, q))
+        robj = object_rotation(w[10], w[11], w[12])
+        om_obj = np.array([robj[:, 0], [0.0, 1.0, 0.0], rot_y(w[11])[:, 2]])
+        for jj, m0, m2, kk, kr, row in ((ju, mx0, mx2, ku, kur, 0), (jv, my0, my2, kv, kvr, 1)):
+            np.multiply(m0, ca, out=jj[7])
+            jj[7] -= m2 * sa
+            np.multiply(kk, rd[row, 1], out=jj[8])
+            jj[8] -= kr * rd[2, 1]
+            np.multiply(m0, sa, out=jj[9])
+            jj[9] += m2 * ca
+            np.subtract(m2, jj[9], out=jj[0])   # z_R: dp/dz_R = e_z - Ry(alpha) e_z
+            # object orientation: d r / d rho_j = omega_j . (b x rm), rm = rows 7..9
+            rm = jj[7:10]
+            np.multiply(b[1], rm[2], out=cr[0])
+            cr[0] -= b[2] * rm[1]
+            np.multiply(b[2], rm[0], out=cr[1])
+            cr[1] -= b[0] * rm[2]
+            np.multiply(b[0], rm[1], out=cr[2])
+            cr[2] -= b[1] * rm[0]
+            np.matmul(om_obj, cr, out=jj[10:13])
+            if st["a_derivs"]:          # angle terms: dp/dalpha = (p_z - z_R, 0, -p_x)
+                p = st["p"]
+                jal = m0 * (p[2] - w[0]) - m2 * p[0]
+                for cols, dd in st["a_derivs"]:
+                    jj[cols] = jal[None, :] * dd.T
+        if self.has_image:
+            jx = np.ascontiguousarray(ju)
+            jy = np.ascontiguousarray(jv)
+            jxy = np.stack([jx.T, jy.T], axis=1)              # (Q, 2, n)
+            _image_stage(st["xy"], jxy, st["tpar"], self.terms, self.obs, 13, True)
+            ju[:] = jxy[:, 0, :].T * (1.0 / self.pitch)
+            jv[:] = jxy[:, 1, :].T * (-1.0 / self.pitch)
+        return jac
+
+
 def static_predict(x, obs: CentreObservations, centres_of_m, detector: DetectorSpec, terms=(),
                    want_jac: bool = False):
     """Modelled centre projections at k = 1 and optionally their Jacobian.
@@ -140,100 +357,13 @@ def static_predict(x, obs: CentreObservations, centres_of_m, detector: DetectorS
     jac : ndarray of shape (Q, 2, 13 + p) or None
         d (col, row) / d x [px per parameter unit].
     """
-    terms = check_terms(terms)
-    x = _check_x(x, terms)
-    n = x.size
-    tpar = _split_terms(x, terms)
-    w = x[:13]
-    z_r, dvec = w[0], w[1:4]
-    r_obj = object_rotation(w[10], w[11], w[12])
-    c1 = centres_of_m @ r_obj.T + w[7:10]                  # (N, 3) eq. 1
-    idx = obs.sphere_index
-    alpha, a_derivs = _angle_stage(obs.alpha_rad, tpar, terms, obs, n, 13)
-    ca, sa = np.cos(alpha), np.sin(alpha)
-    a = c1[idx]
-    ax, ay, az = a[:, 0], a[:, 1], a[:, 2] - z_r
-    p = np.empty_like(a)                                   # eq. 2
-    p[:, 0] = ca * ax + sa * az
-    p[:, 1] = ay
-    p[:, 2] = -sa * ax + ca * az + z_r
-    rdet = detector_rotation(w[4], w[5], w[6])
-    g = p @ rdet                                           # R^T p: point in {DF} axes, from source
-    h = dvec @ rdet                                        # R^T D
-    inv = 1.0 / g[:, 2]
-    rx, ry = g[:, 0] * inv, g[:, 1] * inv
-    xy = np.empty((len(idx), 2))
-    xy[:, 0] = h[2] * rx - h[0]                            # App. A, intersection in {DF}
-    xy[:, 1] = h[2] * ry - h[1]
+    kern = StaticKernel(obs, centres_of_m, detector, terms)
+    r, jac = kern.evaluate(x)
+    q = kern.q
+    uv = (r + kern.observed).reshape(2, q).T.copy()
     if not want_jac:
-        xy = _image_stage(xy, None, tpar, terms, obs, 13, False)
-        return _to_pixels(xy, None, detector, False), None
-
-    # Component-wise chain rule: jx[k], jy[k] = d x / d x_k, d y / d x_k (Q,),
-    # contiguous rows, combined at the end into the (n, Q, 2) layout whose
-    # transpose is the interleaved (2Q, n) Jacobian.
-    q = len(idx)
-    jx = np.empty((n, q))
-    jy = np.empty((n, q))
-    jx[13:] = 0.0                                          # term columns not set below stay zero
-    jy[13:] = 0.0
-    rd = rdet.T                                            # rows: u, v, n axes in {SRF}
-    k = h[2] * inv
-    # d(x, y) / d p: mx[j] = dx/dp_j, my[j] = dy/dp_j, each (Q,)
-    mx = [k * (rd[0, j] - rx * rd[2, j]) for j in range(3)]
-    my = [k * (rd[1, j] - ry * rd[2, j]) for j in range(3)]
-    # z_R: dp/dz_R = (-sin a, 0, 1 - cos a)
-    omc = 1.0 - ca
-    jx[0] = mx[2] * omc - mx[0] * sa
-    jy[0] = my[2] * omc - my[0] * sa
-    # D: x = h_z r_x - h_x with h = R^T D
-    for j in range(3):
-        jx[1 + j] = rx * rd[2, j] - rd[0, j]
-        jy[1 + j] = ry * rd[2, j] - rd[1, j]
-    # detector angles: R = Rz(eta) Ry(phi) Rx(theta)
-    th, ph, et = w[4], w[5], w[6]
-    d_r = (rot_z(et) @ rot_y(ph) @ _drot_x(th),
-           rot_z(et) @ _drot_y(ph) @ rot_x(th),
-           _drot_z(et) @ rot_y(ph) @ rot_x(th))
-    for j, dr in enumerate(d_r):
-        dg = p @ dr
-        dh = dvec @ dr
-        jx[4 + j] = k * (dg[:, 0] - rx * dg[:, 2]) + (rx * dh[2] - dh[0])
-        jy[4 + j] = k * (dg[:, 1] - ry * dg[:, 2]) + (ry * dh[2] - dh[1])
-    # object position P: dp/dP = Ry(alpha)
-    rmx = (mx[0] * ca - mx[2] * sa, mx[1], mx[0] * sa + mx[2] * ca)
-    rmy = (my[0] * ca - my[2] * sa, my[1], my[0] * sa + my[2] * ca)
-    for j in range(3):
-        jx[7 + j] = rmx[j]
-        jy[7 + j] = rmy[j]
-    # object orientation: R_obj = Ry(rho_Y) Rz(rho_Z) Rx(rho_X)
-    rxo, ryo, rzo = w[10], w[11], w[12]
-    d_obj = (rot_y(ryo) @ rot_z(rzo) @ _drot_x(rxo),
-             _drot_y(ryo) @ rot_z(rzo) @ rot_x(rxo),
-             rot_y(ryo) @ _drot_z(rzo) @ rot_x(rxo))
-    for j, dro in enumerate(d_obj):
-        dc = (centres_of_m @ dro.T)[idx]                   # (Q, 3)
-        jx[10 + j] = rmx[0] * dc[:, 0] + rmx[1] * dc[:, 1] + rmx[2] * dc[:, 2]
-        jy[10 + j] = rmy[0] * dc[:, 0] + rmy[1] * dc[:, 1] + rmy[2] * dc[:, 2]
-    # angle terms: dp/dalpha = (-sa ax + ca az, 0, -ca ax - sa az)
-    if a_derivs:
-        dpa0 = -sa * ax + ca * az
-        dpa2 = -ca * ax - sa * az
-        jax = mx[0] * dpa0 + mx[2] * dpa2
-        jay = my[0] * dpa0 + my[2] * dpa2
-        for cols, dd in a_derivs:
-            jx[cols] = jax[None, :] * dd.T
-            jy[cols] = jay[None, :] * dd.T
-    pitch = detector.pixel_pitch_m
-    if not any(t.stage == "image" for t in terms):
-        jt = np.empty((n, q, 2))
-        jt[:, :, 0] = jx * (1.0 / pitch)
-        jt[:, :, 1] = jy * (-1.0 / pitch)
-        return _to_pixels(xy, None, detector, False), jt.transpose(1, 2, 0)   # (Q, 2, n) view
-    jac = np.stack([jx.T, jy.T], axis=1)                  # (Q, 2, n)
-    xy = _image_stage(xy, jac, tpar, terms, obs, 13, True)
-    uv = _to_pixels(xy, jac, detector, True)
-    return uv, jac
+        return uv, None
+    return uv, jac().reshape(kern.n, 2, q).transpose(2, 1, 0)
 
 
 def static_residuals(x, obs: CentreObservations, centres_of_m, detector: DetectorSpec, terms=()):
@@ -243,21 +373,23 @@ def static_residuals(x, obs: CentreObservations, centres_of_m, detector: Detecto
     -------
     ndarray of shape (2Q,) [px], interleaved (u_1, v_1, u_2, v_2, ...).
     """
-    uv, _ = static_predict(x, obs, centres_of_m, detector, terms, want_jac=False)
-    return (uv - obs.uv_px).ravel()
+    kern = StaticKernel(obs, centres_of_m, detector, terms)
+    return kern.interleave(kern.residuals(x))
 
 
 def static_residuals_jac(x, obs: CentreObservations, centres_of_m, detector: DetectorSpec, terms=()):
-    """Residuals (2Q,) [px] and their analytic Jacobian (2Q, 13 + p).
+    """Residuals (2Q,) [px] and their analytic Jacobian (2Q, 13 + p), interleaved.
 
-    The Jacobian may be a non-contiguous (Fortran-ordered) view; ``J.T @ J``
-    is then a fast BLAS product.
+    The Jacobian is a Fortran-ordered view; ``J.T @ J`` is then a fast BLAS product.
     """
-    uv, jac = static_predict(x, obs, centres_of_m, detector, terms, want_jac=True)
-    q = len(uv)
-    if jac.flags.c_contiguous:
-        return (uv - obs.uv_px).ravel(), jac.reshape(2 * q, -1)
-    return (uv - obs.uv_px).ravel(), jac.transpose(2, 0, 1).reshape(-1, 2 * q).T
+    kern = StaticKernel(obs, centres_of_m, detector, terms)
+    r, jac = kern.evaluate(x)
+    k = jac()
+    q = kern.q
+    jt = np.empty((kern.n, q, 2))
+    jt[:, :, 0] = k[:, :q]
+    jt[:, :, 1] = k[:, q:]
+    return kern.interleave(r), jt.reshape(kern.n, 2 * q).T
 
 
 # --------------------------------------------------------------------------- error-motion model

@@ -60,6 +60,8 @@ class LMResult:
         1 ftol, 2 xtol, 3 gtol, 0 max_iter, -1 non-finite start, -2 damping overflow.
     message : str
     success : bool
+    normal : ndarray of shape (n, n) or None
+        J^T W J at x (W = weights^2), the matrix the covariance needs.
     """
 
     x: np.ndarray
@@ -73,6 +75,7 @@ class LMResult:
     status: int
     message: str
     success: bool
+    normal: np.ndarray | None = None
 
 
 def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=1.0, max_iter=100,
@@ -81,8 +84,11 @@ def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=
 
     Parameters
     ----------
-    fun : callable x -> r, shape (m,)
-    fun_jac : callable x -> (r (m,), J (m, n))
+    fun : callable
+        ``x -> r`` (m,); or, when ``fun_jac`` is None, ``x -> (r, jac)`` with
+        ``jac()`` returning J (m, n) at the same x (lazy: called only for
+        accepted points, so a model can reuse its forward pass).
+    fun_jac : callable x -> (r (m,), J (m, n)), or None
     x0 : array_like of shape (n,)
     sigma : ndarray of shape (m,) or None
         Standard deviation of each residual (whitening); None means 1.
@@ -102,6 +108,11 @@ def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=
     if not (np.isfinite(f_scale) and f_scale > 0):
         raise ValueError(f"f_scale must be > 0, got {f_scale}")
     x = np.array(x0, dtype=float)
+    if fun_jac is None:
+        lazy = fun
+    else:
+        def lazy(x_):
+            return fun(x_), (lambda: fun_jac(x_)[1])
     inv_sig = None if sigma is None else 1.0 / np.asarray(sigma, dtype=float)
 
     def weigh(r):
@@ -114,7 +125,10 @@ def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=
             sw = sw * inv_sig
         return cost, sw
 
-    r, jac = fun_jac(x)
+    # nfev counts residual evaluations: fun_jac re-evaluates them, a lazy Jacobian does not
+    extra = 0 if fun_jac is None else 1
+    r, jac_at = lazy(x)
+    jac = jac_at()
     nfev = njev = 1
     if not (np.all(np.isfinite(r)) and np.all(np.isfinite(jac))):
         return LMResult(x, r, jac, np.ones_like(r), np.inf, nfev, njev, 0, -1,
@@ -151,9 +165,9 @@ def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=
                 status, message = 2, "step tolerance reached"
                 break
             x_new = x + step
-            r_new = fun(x_new)
+            r_new, jac_new = lazy(x_new)
             nfev += 1
-            cost_new, _ = weigh(r_new) if np.all(np.isfinite(r_new)) else (np.inf, None)
+            cost_new, sw_new = weigh(r_new) if np.all(np.isfinite(r_new)) else (np.inf, None)
             pred = 0.5 * float(step @ (mu * dscale ** 2 * step - g))
             ratio = (cost - cost_new) / pred if pred > 0 else -1.0
             if ratio > 0:
@@ -166,11 +180,10 @@ def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=
         if status in (2, -2):
             break
         decrease = cost - cost_new
-        x = x_new
-        r, jac = fun_jac(x)
-        nfev += 1
+        x, r, cost, sw = x_new, r_new, cost_new, sw_new
+        jac = jac_new()
         njev += 1
-        cost, sw = weigh(r)
+        nfev += extra
         a, g = normal(r, jac, sw)
         dscale = np.maximum(dscale, np.sqrt(np.maximum(np.diag(a), 1e-300)))
         mu *= max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
@@ -179,7 +192,7 @@ def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=
             status, message = 1, "relative cost decrease below ftol"
             break
     return LMResult(x=x, residuals=r, jac=jac, weights=sw, cost=cost, nfev=nfev, njev=njev,
-                    n_iter=it, status=status, message=message, success=status > 0)
+                    n_iter=it, status=status, message=message, success=status > 0, normal=a)
 
 
 @dataclass(frozen=True)
@@ -212,7 +225,7 @@ class CovarianceInfo:
     weakest_direction: np.ndarray
 
 
-def covariance_from_jacobian(jac, residuals, weights=None, cond_limit=1e10) -> CovarianceInfo:
+def covariance_from_jacobian(jac, residuals, weights=None, cond_limit=1e10, normal=None) -> CovarianceInfo:
     """Parameter covariance from the Jacobian and the residual variance.
 
     Parameters
@@ -224,11 +237,16 @@ def covariance_from_jacobian(jac, residuals, weights=None, cond_limit=1e10) -> C
     cond_limit : float
         Condition number (of the column-scaled weighted Jacobian) above
         which the problem is declared rank deficient.
+    normal : ndarray of shape (n, n), optional
+        J^T W J if already known (e.g. ``LMResult.normal``); skips forming it.
     """
-    jw = jac if weights is None else jac * weights[:, None]
     rw = residuals if weights is None else residuals * weights
-    m, n = jw.shape
-    a = jw.T @ jw
+    m, n = jac.shape
+    if normal is None:
+        jw = jac if weights is None else jac * weights[:, None]
+        a = jw.T @ jw
+    else:
+        a = np.asarray(normal, dtype=float)
     col = np.sqrt(np.maximum(np.diag(a), 1e-300))
     an = a / np.outer(col, col)
     evals, evecs = np.linalg.eigh(an)

@@ -21,6 +21,16 @@ def _readonly(a: np.ndarray) -> np.ndarray:
     return a
 
 
+def _n_distinct(idx: np.ndarray) -> int:
+    """Number of distinct values of a non-negative int array (bincount when compact, else unique)."""
+    if idx.size == 0:
+        return 0
+    top = int(idx.max())
+    if top <= 4 * idx.size + 1024:
+        return int(np.count_nonzero(np.bincount(idx, minlength=top + 1)))
+    return int(np.unique(idx).size)
+
+
 @dataclass(frozen=True)
 class CentreObservations:
     """Observed sphere-centre projections of one stage position.
@@ -143,12 +153,12 @@ class CentreObservations:
     @property
     def n_views(self) -> int:
         """Number of distinct projections."""
-        return int(np.unique(self.view_index).size)
+        return _n_distinct(self.view_index)
 
     @property
     def n_spheres_seen(self) -> int:
         """Number of distinct spheres observed."""
-        return int(np.unique(self.sphere_index).size)
+        return _n_distinct(self.sphere_index)
 
     def select(self, mask) -> "CentreObservations":
         """Subset by a boolean mask or index array of shape (Q,) / (n,)."""

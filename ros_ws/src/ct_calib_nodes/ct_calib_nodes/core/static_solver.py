@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .ct_model import param_names, param_units, static_residuals, static_residuals_jac
+from .ct_model import StaticKernel, param_names, param_units
 from .geometry import DetectorFrameGeometry, DetectorSpec, static_to_detector_frame
 from .lm import LOSSES, correlation_from_covariance, covariance_from_jacobian, levenberg_marquardt
 from .observations import CentreObservations
@@ -177,7 +177,7 @@ def _check_inputs(obs, centres_of_m, detector, srd_m, sdd_m):
 
 def _degeneracy(obs, centres, n_params, min_obs_per_param=2):
     """Reasons the static problem cannot be solved, or None."""
-    seen = np.unique(obs.sphere_index)
+    seen = np.flatnonzero(np.bincount(obs.sphere_index, minlength=len(centres)))
     if obs.n_obs * 2 < n_params + 1:
         return f"too few observations: {obs.n_obs} centres (2 coordinates each) for {n_params} parameters"
     if seen.size < 4:
@@ -336,10 +336,16 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
         return _failed(obs, centres, terms, start,
                        f"cannot initialise: only {n_used} spheres have a usable trajectory (>= 3 views)")
 
-    sigma = None if obs.sigma_px is None else np.repeat(obs.sigma_px, 2)
-    fun = lambda x: static_residuals(x, obs, centres, detector, terms)
-    fun_jac = lambda x: static_residuals_jac(x, obs, centres, detector, terms)
-    res = levenberg_marquardt(fun, fun_jac, start, sigma=sigma, max_iter=max_iter)
+    # The kernel works in blocked order (all u, then all v) with the Jacobian as
+    # the transpose of a C-contiguous (n, 2Q) array; results are interleaved below.
+    kern = StaticKernel(obs, centres, detector, terms)
+    sigma = None if obs.sigma_px is None else kern.blocked_weights(obs.sigma_px)
+
+    def fun(x):
+        r, jac = kern.evaluate(x)
+        return r, (lambda: jac().T)
+
+    res = levenberg_marquardt(fun, None, start, sigma=sigma, max_iter=max_iter)
     nfev, njev, nit = res.nfev, res.njev, res.n_iter
     f_used = None
     if loss != "linear":
@@ -353,11 +359,12 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
                 raise ValueError(f"f_scale_px must be > 0, got {f_scale_px}")
             f_used = float(f_scale_px)
             f = f_used if sigma is None else f_used / float(np.median(obs.sigma_px))
-        res = levenberg_marquardt(fun, fun_jac, res.x, sigma=sigma, loss=loss, f_scale=f, max_iter=max_iter)
+        res = levenberg_marquardt(fun, None, res.x, sigma=sigma, loss=loss, f_scale=f, max_iter=max_iter)
         nfev, njev, nit = nfev + res.nfev, njev + res.njev, nit + res.n_iter
 
-    cov = covariance_from_jacobian(res.jac, res.residuals, res.weights, cond_limit=cond_limit)
-    r2 = res.residuals.reshape(-1, 2)
+    cov = covariance_from_jacobian(res.jac, res.residuals, res.weights, cond_limit=cond_limit,
+                                   normal=res.normal)
+    r2 = res.residuals.reshape(2, -1).T.copy()            # blocked -> (Q, 2)
     rms = float(np.sqrt(np.mean(res.residuals ** 2)))
     robust_px = 1.4826 * float(np.median(np.abs(res.residuals)))
     success, message = res.success, res.message
@@ -383,4 +390,4 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
         success=bool(success), status=res.status, message=message, nfev=nfev, njev=njev, n_iter=nit,
         n_obs=obs.n_obs, n_views=obs.n_views, n_spheres=obs.n_spheres_seen, condition=cov.condition,
         geometry=geom, x0=start, loss=loss, f_scale_px=f_used, terms=terms, centres_of_m=centres,
-        weights=res.weights)
+        weights=kern.interleave(res.weights))
