@@ -438,47 +438,123 @@ class MotionKernel:
         a = (centres - self.stage)[obs.sphere_index]       # (Q, 3)
         c, s = np.cos(alpha)[:, None], np.sin(alpha)[:, None]
         self.e = a * c + np.cross(axis, a) * s + np.outer(a @ axis, axis) * (1.0 - c)
+        self.e_t = np.ascontiguousarray(self.e.T)                   # (3, Q)
+        self.q = obs.n_obs
+        self.has_image = any(t.stage == "image" for t in self.terms)
+        self.c0, self.r0 = detector.centre_px
+        self.pitch = detector.pixel_pitch_m
+        self.observed = np.concatenate([obs.uv_px[:, 0], obs.uv_px[:, 1]])  # (2Q,) blocked
 
-    def predict(self, m, want_jac=False):
-        """(col, row) (Q, 2) [px] and optionally d/dm (Q, 2, 6)."""
+    def _check_m(self, m):
         m = np.asarray(m, dtype=float)
         if m.shape != (6,) or not np.all(np.isfinite(m)):
             raise ValueError(f"motion must be 6 finite values, got shape {m.shape}")
-        gmat = motion_rotation(m[3], m[4], m[5])
-        p = self.stage + m[:3] + self.e @ gmat.T           # eqs 8-11
+        return m
+
+    def evaluate(self, m):
+        """Residuals and a lazy Jacobian at ``m``, BLOCKED as in :class:`StaticKernel`.
+
+        Returns
+        -------
+        r : ndarray of shape (2Q,)
+            modelled - observed ``[u_1 .. u_Q, v_1 .. v_Q]`` [px].
+        jac : callable
+            ``jac()`` returns K, shape (6, 2Q): d r / d m (transposed, blocked).
+        """
+        st = self._forward(self._check_m(m))
+        return st["r"], (lambda: self._jacobian(st))
+
+    def residuals_blocked(self, m):
+        """modelled - observed, blocked (2Q,) [px]."""
+        return self._forward(self._check_m(m))["r"]
+
+    def _forward(self, m):
+        q = self.q
+        pe = motion_rotation(m[3], m[4], m[5]) @ self.e_t          # (3, Q) rotated offsets
         s = self.source
-        dz = p[:, 2] - s[2]
+        base = self.stage + m[:3] - s                              # eqs 8-11, relative to the source
+        dx = pe[0] + base[0]
+        dy = pe[1] + base[1]
+        dz = pe[2] + base[2]
         mag = -s[2] / dz
-        dx, dy = p[:, 0] - s[0], p[:, 1] - s[1]
-        xy = np.empty((len(p), 2))
-        xy[:, 0] = s[0] + dx * mag                         # App. B
-        xy[:, 1] = s[1] + dy * mag
-        jac = None
-        if want_jac:
-            q = len(p)
-            mq = np.zeros((q, 2, 3))
-            mq[:, 0, 0] = mag
-            mq[:, 0, 2] = -dx * mag / dz
-            mq[:, 1, 1] = mag
-            mq[:, 1, 2] = -dy * mag / dz
-            jac = np.empty((q, 2, 6))
-            jac[:, :, :3] = mq
-            gx, gy, gz = m[3], m[4], m[5]
-            d_g = (_drot_x(gx) @ rot_y(gy) @ rot_z(gz),
-                   rot_x(gx) @ _drot_y(gy) @ rot_z(gz),
-                   rot_x(gx) @ rot_y(gy) @ _drot_z(gz))
-            for j, dg in enumerate(d_g):
-                jac[:, :, 3 + j] = np.einsum("qij,qj->qi", mq, self.e @ dg.T)
-        xy = _image_stage_fixed(xy, jac, self.tpar, self.terms, self.obs)
-        return _to_pixels(xy, jac, self.detector, want_jac), jac
+        r = np.empty(2 * q)
+        xy = None
+        if self.has_image:
+            xy = np.empty((q, 2))
+            xy[:, 0] = s[0] + dx * mag                              # App. B
+            xy[:, 1] = s[1] + dy * mag
+            xy_t = _image_stage_fixed(xy, None, self.tpar, self.terms, self.obs)
+            np.multiply(xy_t[:, 0], 1.0 / self.pitch, out=r[:q])
+            np.multiply(xy_t[:, 1], -1.0 / self.pitch, out=r[q:])
+            r[:q] += self.c0
+            r[q:] += self.r0
+        else:
+            np.multiply(dx, mag, out=r[:q])
+            r[:q] *= 1.0 / self.pitch
+            r[:q] += self.c0 + s[0] / self.pitch
+            np.multiply(dy, mag, out=r[q:])
+            r[q:] *= -1.0 / self.pitch
+            r[q:] += self.r0 - s[1] / self.pitch
+        r -= self.observed
+        return dict(m=m, pe=pe, dx=dx, dy=dy, dz=dz, mag=mag, xy=xy, r=r)
+
+    def _jacobian(self, st):
+        q = self.q
+        m, pe, mag = st["m"], st["pe"], st["mag"]
+        su, sv = (1.0, 1.0) if self.has_image else (1.0 / self.pitch, -1.0 / self.pitch)
+        jac = np.empty((6, 2 * q))
+        ju, jv = jac[:, :q], jac[:, q:]
+        # d(x, y)/dp = (mag, 0, -dx mag/dz), (0, mag, -dy mag/dz)
+        w = mag / st["dz"]
+        np.multiply(mag, su, out=ju[0])
+        ju[1] = 0.0
+        np.multiply(st["dx"], -su, out=ju[2])
+        ju[2] *= w
+        jv[0] = 0.0
+        np.multiply(mag, sv, out=jv[1])
+        np.multiply(st["dy"], -sv, out=jv[2])
+        jv[2] *= w
+        # G = Rx Ry Rz(gamma): d(G e)/d gamma_j = omega_j x (G e), omega = e_x, Rx e_y, Rx Ry e_z;
+        # d r / d gamma_j = omega_j . (G e x m_r), m_r = the rows above
+        gx, gy = m[3], m[4]
+        om = np.array([[1.0, 0.0, 0.0], rot_x(gx)[:, 1], (rot_x(gx) @ rot_y(gy))[:, 2]])
+        cr = np.empty((3, q))
+        np.multiply(pe[1], ju[2], out=cr[0])
+        np.multiply(pe[2], ju[0], out=cr[1])
+        cr[1] -= pe[0] * ju[2]
+        np.multiply(pe[1], ju[0], out=cr[2])
+        np.negative(cr[2], out=cr[2])
+        np.matmul(om, cr, out=ju[3:6])
+        np.multiply(pe[1], jv[2], out=cr[0])
+        cr[0] -= pe[2] * jv[1]
+        np.multiply(pe[0], jv[2], out=cr[1])
+        np.negative(cr[1], out=cr[1])
+        np.multiply(pe[0], jv[1], out=cr[2])
+        np.matmul(om, cr, out=jv[3:6])
+        if self.has_image:
+            jxy = np.stack([ju.T, jv.T], axis=1)                  # (Q, 2, 6)
+            _image_stage_fixed(st["xy"], jxy, self.tpar, self.terms, self.obs)
+            ju[:] = jxy[:, 0, :].T * (1.0 / self.pitch)
+            jv[:] = jxy[:, 1, :].T * (-1.0 / self.pitch)
+        return jac
+
+    def predict(self, m, want_jac=False):
+        """(col, row) (Q, 2) [px] and optionally d/dm (Q, 2, 6)."""
+        r, jac = self.evaluate(m)
+        uv = (r + self.observed).reshape(2, self.q).T.copy()
+        if not want_jac:
+            return uv, None
+        return uv, jac().reshape(6, 2, self.q).transpose(2, 1, 0).copy()
 
     def residuals(self, m):
-        uv, _ = self.predict(m)
-        return (uv - self.obs.uv_px).ravel()
+        """modelled - observed, interleaved (2Q,) [px]."""
+        return self.residuals_blocked(m).reshape(2, -1).T.ravel()
 
     def residuals_jac(self, m):
-        uv, jac = self.predict(m, want_jac=True)
-        return (uv - self.obs.uv_px).ravel(), jac.reshape(2 * len(uv), 6)
+        """Residuals (2Q,) and Jacobian (2Q, 6), interleaved."""
+        r, jac = self.evaluate(m)
+        q = self.q
+        return r.reshape(2, q).T.ravel(), jac().reshape(6, 2, q).transpose(2, 1, 0).reshape(2 * q, 6)
 
 
 def _image_stage_fixed(xy, jac, tpar, terms, obs):

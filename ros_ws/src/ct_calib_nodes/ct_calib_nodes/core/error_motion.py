@@ -220,9 +220,15 @@ def solve_error_motion(obs_k: CentreObservations, static, detector: DetectorSpec
     if sv[1] <= 1e-6 * sv[0]:
         return _failed(obs, mode, start, srd_k, srd_1, "degenerate: the observed spheres are collinear")
 
+    # blocked order (all u, then all v) with a lazy Jacobian; interleaved again for the result
     kern = MotionKernel(geom, obs, detector, terms, term_params)
-    sigma = None if obs.sigma_px is None else np.repeat(obs.sigma_px, 2)
-    res = levenberg_marquardt(kern.residuals, kern.residuals_jac, start, sigma=sigma, max_iter=max_iter)
+    sigma = None if obs.sigma_px is None else np.concatenate([obs.sigma_px, obs.sigma_px])
+
+    def fun(m):
+        r, jac = kern.evaluate(m)
+        return r, (lambda: jac().T)
+
+    res = levenberg_marquardt(fun, None, start, sigma=sigma, max_iter=max_iter)
     nfev, njev, nit = res.nfev, res.njev, res.n_iter
     if loss != "linear":
         rw = res.residuals if sigma is None else res.residuals / sigma
@@ -230,10 +236,9 @@ def solve_error_motion(obs_k: CentreObservations, static, detector: DetectorSpec
             f = 2.5 * max(1.4826 * float(np.median(np.abs(rw - np.median(rw)))), 1e-12)
         else:
             f = float(f_scale_px) if sigma is None else float(f_scale_px) / float(np.median(obs.sigma_px))
-        res = levenberg_marquardt(kern.residuals, kern.residuals_jac, res.x, sigma=sigma, loss=loss,
-                                  f_scale=f, max_iter=max_iter)
+        res = levenberg_marquardt(fun, None, res.x, sigma=sigma, loss=loss, f_scale=f, max_iter=max_iter)
         nfev, njev, nit = nfev + res.nfev, njev + res.njev, nit + res.n_iter
-    cov = covariance_from_jacobian(res.jac, res.residuals, res.weights, cond_limit=cond_limit)
+    cov = covariance_from_jacobian(res.jac, res.residuals, res.weights, cond_limit=cond_limit, normal=res.normal)
     success, message = res.success, res.message
     robust_px = 1.4826 * float(np.median(np.abs(res.residuals)))
     if cov.rank_deficient:
@@ -254,7 +259,7 @@ def solve_error_motion(obs_k: CentreObservations, static, detector: DetectorSpec
         x=res.x, names=MOTION_PARAM_NAMES, units=MOTION_PARAM_UNITS, covariance=cov.covariance,
         covariance_total=cov_total, correlation=correlation_from_covariance(cov.covariance),
         normal_inverse=cov.normal_inverse, variance_factor=cov.variance_factor,
-        residuals_px=res.residuals.reshape(-1, 2), rms_px=float(np.sqrt(np.mean(res.residuals ** 2))),
+        residuals_px=res.residuals.reshape(2, -1).T.copy(), rms_px=float(np.sqrt(np.mean(res.residuals ** 2))),
         cost=res.cost, success=bool(success), status=res.status, message=message, nfev=nfev, njev=njev,
         n_iter=nit, n_obs=obs.n_obs, n_views=obs.n_views, mode=mode, condition=cov.condition, x0=start,
         srd_reported_k_m=srd_k, srd_reported_1_m=srd_1, static_sensitivity=sens)
@@ -274,7 +279,7 @@ def _static_sensitivity(res, cov, static_res: StaticResult, obs, detector):
             xp[i] += sgn * h
             g = static_to_detector_frame(xp[:13], static_res.centres_of_m)
             k = MotionKernel(g, obs, detector, static_res.terms, xp[13:])
-            rr.append(k.residuals(res.x))
+            rr.append(k.residuals_blocked(res.x))          # same order as res.jac
         js[:, i] = (rr[0] - rr[1]) / (2 * h)
     w = res.weights
     jm = res.jac * w[:, None]
