@@ -5,7 +5,6 @@ import json
 import numpy as np
 import pytest
 
-from ct_calib_nodes.core.observations import CentreObservations
 from ct_calib_nodes.core.scenario import DEG
 from ct_calib_nodes.core.simulate_obs import simulate_observations
 from ct_calib_nodes.core.static_solver import solve_static

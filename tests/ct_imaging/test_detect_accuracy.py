@@ -64,7 +64,6 @@ def results(frames):
         srd = 0.364 if key == "k1" else 0.724
         rng_d = diameter_range(srd)
         rows = {m: [] for m in ("detector", "centroid", "contour_fitEllipse")}
-        radial = []
         zs = []
         for fr in frs:
             tr = fr.truth

@@ -191,7 +191,6 @@ def test_overlapping_shadows_multiply(render_ideal_w, render_one_sphere, render_
     # the closed-form line-sphere distance, computed independently here
     w = render_ideal_w()
     det = render_small_detector
-    s = np.array([0.0, 0.0, -w[3]])
     col = 50 + 7                      # 7 px right of centre, row 50
     x = 7 * det.pixel_pitch_m
     chords = []

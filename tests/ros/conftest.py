@@ -12,7 +12,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[2]
 INSTALL = ROOT / "ros_ws" / "install"
 
 try:
-    import rclpy  # noqa: F401
+    import rclpy  # noqa: F401 - only checks that the ROS environment is loaded
     import metro_msgs.msg  # noqa: F401
 except ImportError as exc:  # pragma: no cover - a clear message instead of a wall of errors
     raise pytest.UsageError(

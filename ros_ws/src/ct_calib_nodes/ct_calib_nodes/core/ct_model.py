@@ -29,7 +29,7 @@ import numpy as np
 
 from .geometry import (DetectorFrameGeometry, DetectorSpec, STATIC_PARAM_NAMES, STATIC_PARAM_UNITS,
                        MOTION_PARAM_NAMES, MOTION_PARAM_UNITS, detector_rotation, motion_rotation,
-                       object_rotation, rot_x, rot_y, rot_z)
+                       object_rotation, rot_x, rot_y)
 from .observations import CentreObservations
 from .terms import check_terms
 
