@@ -8,7 +8,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from ct_calib_nodes.io.mcap_io import ReadReport, iter_recording
+from ct_calib_nodes.io.mcap_io import ReadReport, Rosbag2McapWriter, iter_recording
 
 pytestmark = pytest.mark.ros
 ROOT = pathlib.Path(__file__).resolve().parents[2]
@@ -84,9 +84,32 @@ def test_offline_solve_agrees_with_live(campaign, tmp_path):
     assert results["counts"]["frames"] == N_POS * N_PROJ and not results["problems"]
 
 
+def _stamp_ordered_copy(bag, path):
+    """The campaign's messages rewritten in header-stamp order (each frame beside its stage reading).
+
+    The live recording is in receive order, and under load DDS can deliver a burst of stage
+    readings seconds after their frames (a lost sample waits for the writer's next heartbeat), so
+    where a cut falls in it depends on the machine. Cutting a stamp-ordered copy does not."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    rows = []
+    with open(next(bag.glob("*.mcap")), "rb") as fh:
+        for i, (schema, ch, rec, msg) in enumerate(
+                make_reader(fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages(log_time_order=False)):
+            h = getattr(msg, "header", None)
+            stamp = h.stamp.sec * 10**9 + h.stamp.nanosec if h is not None else rec.log_time
+            rows.append((stamp, i, ch.topic, schema.name, rec.data, rec.log_time))
+    with Rosbag2McapWriter(path) as w:
+        for _, _, topic, type_name, data, log_time in sorted(rows):
+            w.add_topic(topic, type_name)     # idempotent for a known topic
+            w.write_raw(topic, data, log_time)
+    return path.read_bytes()
+
+
 def test_offline_truncated_recording(campaign, tmp_path):
     """Half a recording: what is readable is solved, the cut is reported; a stub: exit 1, no files."""
-    src = next(campaign["bag"].glob("*.mcap")).read_bytes()
+    src = _stamp_ordered_copy(campaign["bag"], tmp_path / "ordered.mcap")
     half = tmp_path / "half.mcap"
     half.write_bytes(src[: int(len(src) * 0.55)])
     res = subprocess.run([str(BIN / "ct_offline_solve"), str(half), "--out", str(tmp_path / "half_out")],

@@ -115,9 +115,12 @@ def main(argv=None):
     node.create_subscription(CtGeometry, "/ct/geometry", lambda m: latest.__setitem__("geometry", m), QOS_LATCHED)
     ok = False
     last_print = 0.0
+    from rclpy.executors import SingleThreadedExecutor  # noqa: PLC0415
+    executor = SingleThreadedExecutor()   # persistent: every ready subscription served in turn
+    executor.add_node(node)
     try:
         while time.monotonic() - t_start < args.timeout:
-            rclpy.spin_once(node, timeout_sec=0.2)
+            executor.spin_once(timeout_sec=0.2)
             # done: every frame detected, and both error maps updated after the last observation
             sim_done = procs["sim"][0].poll() == 0
             quiet = seen["all_obs_at"] is not None and time.monotonic() - seen["all_obs_at"] > 6.0

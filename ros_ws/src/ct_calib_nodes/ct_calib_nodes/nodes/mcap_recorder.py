@@ -6,6 +6,12 @@ adapting reliability and durability to what the publishers offer (so it
 records best-effort drivers as well as latched results), and stores the raw
 serialized bytes it receives with the receive time as log time.
 
+File order is receive order, as with rosbag2. Under load a reliable DDS
+sample lost in transport is repaired only at the writer's next heartbeat
+(Fast DDS: ~3 s), so a burst of stage readings can land seconds after their
+frames. Readers must pair frames and readings by header stamp over the whole
+file (ct_offline_solve does), not by neighbourhood in the file.
+
 Parameters
 ----------
 output : str
@@ -105,6 +111,7 @@ def main(args=None):
     import signal  # noqa: PLC0415
     import time  # noqa: PLC0415
 
+    from rclpy.executors import SingleThreadedExecutor  # noqa: PLC0415
     from rclpy.signals import SignalHandlerOptions  # noqa: PLC0415
 
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
@@ -112,16 +119,25 @@ def main(args=None):
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.append(True))
     node = McapRecorder()
+    # One executor for the whole run. rclpy.spin_once(node) builds a fresh wait
+    # set on every call and serves the first ready subscription in topic order,
+    # so under load a backlog of frames starves the joint states and the file
+    # holds frames far from their stage readings (a truncated recording then
+    # has frames without partners). A persistent executor serves every ready
+    # subscription of a wait before waiting again: round robin.
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
     try:
         while not stop:
-            rclpy.spin_once(node, timeout_sec=0.1)
+            executor.spin_once(timeout_sec=0.1)
         count, t_last, t0 = node.writer.message_count, time.monotonic(), time.monotonic()
         while time.monotonic() - t_last < DRAIN_QUIET_S and time.monotonic() - t0 < DRAIN_MAX_S:
-            rclpy.spin_once(node, timeout_sec=0.05)
+            executor.spin_once(timeout_sec=0.05)
             if node.writer.message_count != count:
                 count, t_last = node.writer.message_count, time.monotonic()
     finally:
         node.close()
+        executor.remove_node(node)
         node.destroy_node()
         rclpy.try_shutdown()
 
