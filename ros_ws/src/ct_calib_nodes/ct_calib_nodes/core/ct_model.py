@@ -435,10 +435,14 @@ class MotionKernel:
         centres = np.asarray(geom.centres_df_m, dtype=float)
         obs.check_spheres(len(centres))
         alpha, _ = _angle_stage(obs.alpha_rad, self.tpar, self.terms, obs, 0, 0)
-        a = (centres - self.stage)[obs.sphere_index]       # (Q, 3)
-        c, s = np.cos(alpha)[:, None], np.sin(alpha)[:, None]
-        self.e = a * c + np.cross(axis, a) * s + np.outer(a @ axis, axis) * (1.0 - c)
-        self.e_t = np.ascontiguousarray(self.e.T)                   # (3, Q)
+        # Rodrigues per sphere, then per observation: e = c a + s (r x a) + (1 - c)(r . a) r
+        a_s = centres - self.stage                                   # (N, 3)
+        ra = np.cross(axis, a_s)[obs.sphere_index].T                 # (3, Q)
+        ar = (a_s @ axis)[obs.sphere_index]                          # (Q,)
+        at = a_s[obs.sphere_index].T                                 # (3, Q)
+        c, s = np.cos(alpha), np.sin(alpha)
+        self.e_t = at * c + ra * s + np.outer(axis, ar * (1.0 - c))  # (3, Q)
+        self.e = self.e_t.T
         self.q = obs.n_obs
         self.has_image = any(t.stage == "image" for t in self.terms)
         self.c0, self.r0 = detector.centre_px

@@ -29,7 +29,7 @@ import numpy as np
 
 from .ct_model import MotionKernel
 from .geometry import MOTION_PARAM_NAMES, MOTION_PARAM_UNITS, DetectorFrameGeometry, DetectorSpec, static_to_detector_frame
-from .lm import LOSSES, correlation_from_covariance, covariance_from_jacobian, levenberg_marquardt
+from .lm import LOSSES, STOL, correlation_from_covariance, covariance_from_jacobian, levenberg_marquardt
 from .observations import CentreObservations
 from .static_solver import StaticResult, _plain
 from .terms import check_terms
@@ -228,7 +228,7 @@ def solve_error_motion(obs_k: CentreObservations, static, detector: DetectorSpec
         r, jac = kern.evaluate(m)
         return r, (lambda: jac().T)
 
-    res = levenberg_marquardt(fun, None, start, sigma=sigma, max_iter=max_iter)
+    res = levenberg_marquardt(fun, None, start, sigma=sigma, max_iter=max_iter, stol=STOL)
     nfev, njev, nit = res.nfev, res.njev, res.n_iter
     if loss != "linear":
         rw = res.residuals if sigma is None else res.residuals / sigma
@@ -236,7 +236,7 @@ def solve_error_motion(obs_k: CentreObservations, static, detector: DetectorSpec
             f = 2.5 * max(1.4826 * float(np.median(np.abs(rw - np.median(rw)))), 1e-12)
         else:
             f = float(f_scale_px) if sigma is None else float(f_scale_px) / float(np.median(obs.sigma_px))
-        res = levenberg_marquardt(fun, None, res.x, sigma=sigma, loss=loss, f_scale=f, max_iter=max_iter)
+        res = levenberg_marquardt(fun, None, res.x, sigma=sigma, loss=loss, f_scale=f, max_iter=max_iter, stol=STOL)
         nfev, njev, nit = nfev + res.nfev, njev + res.njev, nit + res.n_iter
     cov = covariance_from_jacobian(res.jac, res.residuals, res.weights, cond_limit=cond_limit, normal=res.normal)
     success, message = res.success, res.message
@@ -271,16 +271,17 @@ def _static_sensitivity(res, cov, static_res: StaticResult, obs, detector):
     sd = static_res.std
     nfree = len(xs)
     js = np.empty((len(res.residuals), nfree))
+    # Forward differences with a step of 0.1 sd: over a tenth of a standard deviation the model
+    # is linear: central differences (twice the cost) agreed to 1.5e-6 of the largest entry and
+    # to 6 digits in the propagated standard deviations (position k = 19 of the default campaign).
+    r0 = res.residuals                                      # at xs and res.x, same order as res.jac
     for i in range(nfree):
         h = max(0.1 * sd[i], 1e-12)
-        rr = []
-        for sgn in (1.0, -1.0):
-            xp = xs.copy()
-            xp[i] += sgn * h
-            g = static_to_detector_frame(xp[:13], static_res.centres_of_m)
-            k = MotionKernel(g, obs, detector, static_res.terms, xp[13:])
-            rr.append(k.residuals_blocked(res.x))          # same order as res.jac
-        js[:, i] = (rr[0] - rr[1]) / (2 * h)
+        xp = xs.copy()
+        xp[i] += h
+        g = static_to_detector_frame(xp[:13], static_res.centres_of_m)
+        k = MotionKernel(g, obs, detector, static_res.terms, xp[13:])
+        js[:, i] = (k.residuals_blocked(res.x) - r0) / h
     w = res.weights
     jm = res.jac * w[:, None]
     return -cov.normal_inverse @ (jm.T @ (js * w[:, None]))

@@ -57,7 +57,7 @@ class LMResult:
         0.5 f^2 sum rho((r / (sigma f))^2) at x.
     nfev, njev, n_iter : int
     status : int
-        1 ftol, 2 xtol, 3 gtol, 0 max_iter, -1 non-finite start, -2 damping overflow.
+        1 ftol (actual or predicted decrease), 2 xtol, 3 gtol, 4 stol, 0 max_iter, -1 non-finite start, -2 damping overflow.
     message : str
     success : bool
     normal : ndarray of shape (n, n) or None
@@ -78,8 +78,11 @@ class LMResult:
     normal: np.ndarray | None = None
 
 
+STOL = 0.02   # default statistical stopping tolerance of the CT solvers [standard deviations]
+
+
 def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=1.0, max_iter=100,
-                        ftol=1e-10, xtol=1e-10, gtol=1e-10, mu0=1e-7) -> LMResult:
+                        ftol=1e-10, xtol=1e-10, gtol=1e-10, mu0=1e-7, stol=None) -> LMResult:
     """Minimise 0.5 sum rho((r_i(x) / (sigma_i f))^2) f^2 by Levenberg-Marquardt.
 
     Parameters
@@ -102,6 +105,12 @@ def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=
         (cosine) tolerances.
     mu0 : float
         Initial damping relative to max(diag(J^T J)).
+    stol : float, optional
+        Statistical tolerance: converged when the Gauss-Newton step still
+        available is shorter than ``stol`` standard deviations of the
+        estimate (Mahalanobis length in the covariance s^2 (J^T W J)^-1,
+        s^2 = 2 cost / (m - n)). Stopping there moves the estimate by at most
+        stol sigma; 0.02 changes its uncertainty by 0.02 % in quadrature.
     """
     if loss not in LOSSES:
         raise ValueError(f"unknown loss {loss!r}; choose one of {LOSSES}")
@@ -135,6 +144,7 @@ def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=
                         "residuals or Jacobian not finite at the start point", False)
     cost, sw = weigh(r)
     scaled = loss != "linear" or inv_sig is not None
+    dof = max(r.size - x.size, 1)
 
     def normal(r, jac, sw):
         if scaled:
@@ -154,6 +164,22 @@ def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=
         if rn == 0.0 or np.max(np.abs(g) / (dscale * rn)) <= gtol:
             status, message = 3, "gradient tolerance reached"
             break
+        # predicted decrease of the undamped (Gauss-Newton) step, 0.5 g^T A^-1 g: when even that
+        # is below ftol * cost, no step can gain more (MINPACK's ftol test uses the predicted
+        # decrease too). Saves the last residual + Jacobian evaluation of a converged fit.
+        # With stol: stop when that step, in the metric of the estimate's own covariance
+        # s^2 A^-1 (s^2 = 2 cost / (m - n)), is shorter than stol standard deviations.
+        try:
+            y = np.linalg.solve(np.linalg.cholesky(a), g)
+            gn2 = float(y @ y)                       # g^T A^-1 g = 2 x predicted decrease
+            if 0.5 * gn2 <= ftol * cost:
+                status, message = 1, "predicted cost decrease below ftol"
+                break
+            if stol is not None and gn2 * dof <= stol ** 2 * 2.0 * cost:
+                status, message = 4, f"remaining step below {stol:g} standard deviations"
+                break
+        except np.linalg.LinAlgError:
+            pass
         while True:
             lhs = a + mu * np.diag(dscale ** 2)
             try:
