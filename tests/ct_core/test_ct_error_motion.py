@@ -111,3 +111,37 @@ def test_rejects_failed_static(sim_k1, static_k1, detector, campaign):
         solve_error_motion(sim_k1.obs, bad, detector, 0.364, 0.364)
     with pytest.raises(ValueError, match="mode"):
         solve_error_motion(sim_k1.obs, static_k1, detector, 0.364, 0.364, mode="both")
+
+
+def test_campaign_residuals_follow_the_noise(campaign_solution, campaign, centres, detector, alphas, static_k1):
+    """The report's residuals (every position against its model) have the pixel noise's RMS when
+    the solved motions are used, and reveal a position whose motion is wrong by 50 um."""
+    from ct_calib_nodes.core.ct_pipeline import CampaignAccumulator, campaign_residuals
+
+    multi, _ = campaign_solution
+    rng = np.random.default_rng(77)
+    acc = CampaignAccumulator()
+    for k in range(3):
+        sim = simulate_observations(campaign.static_w, centres, detector, alphas, rng, SIGMA_PX,
+                                    motion=campaign.motions[k])
+        o = sim.obs
+        for v in np.unique(o.view_index):
+            sel = o.view_index == v
+            acc.add_frame(int(o.stamp_ns[sel][0]) + k * 10**12, float(o.alpha_rad[sel][0]),
+                          campaign.srd_reported_m[k], o.sphere_index[sel], o.uv_px[sel])
+    assert len(acc.positions) == 3
+    motions = {k: multi[k].x for k in (1, 2)}
+    res = campaign_residuals(acc, static_k1.x, centres, detector, motions)
+    n = res.residuals_px.size
+    assert set(np.unique(res.stage_index)) == {0, 1, 2}
+    # RMS per coordinate ~ sigma (chi-square with n dof: relative sd sqrt(1/(2n)); 5 sd band)
+    rms = np.sqrt(np.mean(res.residuals_px ** 2))
+    assert abs(rms / SIGMA_PX - 1) < 5 * np.sqrt(1 / (2 * n)) + 0.01
+    bad = dict(motions)
+    bad[2] = motions[2] + np.array([50e-6, 0, 0, 0, 0, 0])     # ~0.36 px on the detector
+    worse = campaign_residuals(acc, static_k1.x, centres, detector, bad)
+    r2 = worse.residuals_px[worse.stage_index == 2]
+    assert np.sqrt(np.mean(r2 ** 2)) > 3 * SIGMA_PX
+    # positions without a motion are left out
+    only0 = campaign_residuals(acc, static_k1.x, centres, detector, {})
+    assert set(np.unique(only0.stage_index)) == {0}

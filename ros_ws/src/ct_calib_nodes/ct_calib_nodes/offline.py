@@ -198,6 +198,7 @@ def _write_result_mcap(path, res, instrument):
 def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files, reference_path=None):
     """Write everything into a temporary directory, then move each file into out_dir."""
     from ct_calib_nodes.core import report as rep  # noqa: PLC0415
+    from ct_calib_nodes.core.ct_pipeline import campaign_residuals  # noqa: PLC0415
     from ct_calib_nodes.io.campaign_outputs import write_report_and_export  # noqa: PLC0415
     from ct_calib_nodes.io.results import write_json_atomic  # noqa: PLC0415
 
@@ -213,9 +214,10 @@ def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files
             motions = np.zeros((len(ks), 6))
             for i, k in enumerate(ks[1:], start=1):
                 motions[i] = res.motions["multi"][k].x
-            obs0 = res.acc.positions[0].observations()
-            resid = rep.ReprojectionResiduals(res.static.residuals_px, obs0.view_index, obs0.sphere_index,
-                                              label="static solve, first stage position")
+            resid = campaign_residuals(res.acc, res.static.x, res.static.centres_of_m, instrument.detector,
+                                       {k: m.x for k, m in res.motions["multi"].items() if m.success},
+                                       terms=res.static.terms,
+                                       label="static model (k = 1) and multi-projection error motions (k > 1)")
             s = res.static
             write_report_and_export(
                 tmp, names=s.names, units=s.units, values=s.x, covariance=s.covariance, geometry=s.geometry,

@@ -190,6 +190,38 @@ def campaign_error_map(acc: CampaignAccumulator, motion_results: dict, static: S
     return error_map(srd, motions, covs), ks
 
 
+def campaign_residuals(acc: CampaignAccumulator, static_x, centres_of_m, detector: DetectorSpec,
+                       motions: dict, terms=(), label: str = "campaign"):
+    """Reprojection residuals (observed - modelled) [px] of every stage position with a model.
+
+    Position 0 against the static model at ``static_x``; position k > 0 against the error-motion
+    model with ``motions[k]`` (6,) on the k = 1 geometry. Positions without a motion are left
+    out. Returns a report.ReprojectionResiduals, or None when nothing is left.
+    """
+    from .ct_model import motion_residuals, static_residuals  # noqa: PLC0415
+    from .geometry import static_to_detector_frame  # noqa: PLC0415
+    from .report import ReprojectionResiduals  # noqa: PLC0415
+
+    x = np.asarray(static_x, dtype=float)
+    if not acc.positions or not np.all(np.isfinite(x)):
+        return None
+    centres = np.asarray(centres_of_m, dtype=float)
+    geom = static_to_detector_frame(x[:13], centres)
+    parts = []
+    for k, pos in enumerate(acc.positions):
+        obs = pos.observations()
+        if obs.n_obs == 0 or (k > 0 and k not in motions):
+            continue
+        if k == 0:
+            r = static_residuals(x, obs, centres, detector, terms)
+        else:
+            r = motion_residuals(np.asarray(motions[k], dtype=float), obs, geom, detector, terms, x[13:])
+        parts.append((-r.reshape(-1, 2), obs.view_index, obs.sphere_index, np.full(obs.n_obs, k)))
+    if not parts:
+        return None
+    return ReprojectionResiduals(*(np.concatenate(p) for p in zip(*parts)), label=label)
+
+
 # ------------------------------------------------------------------------------------------------
 # Frame processing: detection + identity, frame by frame (detector node and offline replay)
 

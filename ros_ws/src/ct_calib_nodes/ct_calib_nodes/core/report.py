@@ -500,6 +500,7 @@ def _plot_residuals(plt, res: ReprojectionResiduals, path):
     axs[3].set_ylabel("RMS residual per stage position [px]")
     axs[3].set_title("Per-stage RMS", fontsize=10)
     axs[3].set_ylim(0.0, 1.15 * float(np.max(rms_k)) + 1e-12)
+    axs[3].set_xticks(ks if ks.size <= 25 else ks[:: int(math.ceil(ks.size / 25))])
     for ax in (axs[0], axs[2], axs[3]):
         ax.grid(True, alpha=0.3)
     fig.suptitle(f"{res.label}: {r.shape[0]} observations, RMS {res.rms_px():.4g} px", fontsize=11)

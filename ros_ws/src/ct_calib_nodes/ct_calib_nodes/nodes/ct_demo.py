@@ -157,6 +157,32 @@ def main(argv=None):
     return 0
 
 
+def _residuals_from_bag(bag, ref, inst, w, multi_map):
+    """Reprojection residuals of the published geometry and multi-projection error motions at every
+    stage position, from the recorded /ct/observations (the messages the solvers used), or None."""
+    from ct_calib_nodes.core.ct_pipeline import CampaignAccumulator, campaign_residuals  # noqa: PLC0415
+    from ct_calib_nodes.io.convert import MessageError  # noqa: PLC0415
+    from ct_calib_nodes.io.mcap_io import iter_recording  # noqa: PLC0415
+    from ct_calib_nodes.io.observations_msg import frame_observations  # noqa: PLC0415
+
+    acc = CampaignAccumulator()
+    id_to_index = {int(i): k for k, i in enumerate(ref.ids)}
+    for m in iter_recording(bag, topics=["/ct/observations"]):
+        try:
+            acc.add_frame(*frame_observations(m.msg, id_to_index))
+        except (MessageError, ValueError) as exc:
+            print(f"[demo] residual plot: skipped a recorded observation message ({exc})")
+    if not acc.positions or w.shape != (13,):
+        return None
+    motions = {}                       # the error map's rows 1.. are positions k >= 1, matched by SRD
+    for srd, est in zip(list(multi_map.srd_reported_m)[1:], multi_map.motions):
+        k = int(np.argmin([abs(p.srd_reported_m - srd) for p in acc.positions]))
+        if k > 0 and abs(acc.positions[k].srd_reported_m - srd) < 1e-5:
+            motions[k] = np.asarray(est.values, dtype=float)
+    return campaign_residuals(acc, w, ref.centres_of_m, inst.detector, motions,
+                              label="static model (k = 1) and multi-projection error motions (k > 1)")
+
+
 def write_outputs(out: pathlib.Path, latest: dict, wall_s: float, bag, bag_mb: float) -> pathlib.Path:
     """Report, geometry export and recovered-vs-truth table from the published results."""
     from ct_calib_nodes.io import ct_files  # noqa: PLC0415
@@ -178,7 +204,8 @@ def write_outputs(out: pathlib.Path, latest: dict, wall_s: float, bag, bag_mb: f
     index = write_report_and_export(out, names=est.names, units=est.units, values=est.values, covariance=cov,
                                     geometry=geom, series=series, motions=motions,
                                     srd_reported_m=latest["multi"].srd_reported_m, detector=inst.detector,
-                                    reference_path=out / "reference_error_map.csv", meta=meta)
+                                    reference_path=out / "reference_error_map.csv",
+                                    residuals=_residuals_from_bag(bag, ref, inst, w, latest["multi"]), meta=meta)
 
     truth = read_truth(out / "simulation_truth.yaml")
     tem = truth.error_map()
