@@ -152,3 +152,19 @@ def test_coarse_to_fine_and_stopping_rule_reach_the_full_optimum(static_k1, sim_
                           x0=x0)
     assert direct.success, direct.message
     assert np.max(np.abs((direct.x - ref.x) / direct.std)) < 0.03
+
+
+def test_covariance_is_that_of_the_estimate(static_k1, sim_k1, centres, detector):
+    """The chord stopping test reports J^T J of the previous iterate: the standard deviations and
+    correlations must equal those from the Jacobian AT the estimate to far below their own
+    statistical uncertainty (relative sd of an sd here: sqrt(1/(2 dof)) ~ 0.004)."""
+    from ct_calib_nodes.core.ct_model import StaticKernel
+    from ct_calib_nodes.core.lm import covariance_from_jacobian
+
+    kern = StaticKernel(sim_k1.obs, centres, detector)
+    r, jac = kern.evaluate(static_k1.x)
+    cov = covariance_from_jacobian(jac().T, r).covariance
+    sd = np.sqrt(np.diag(cov))
+    assert np.max(np.abs(static_k1.std / sd - 1)) < 1e-3
+    corr = cov / np.outer(sd, sd)
+    assert np.max(np.abs(static_k1.correlation - corr)) < 1e-3

@@ -228,7 +228,7 @@ def solve_error_motion(obs_k: CentreObservations, static, detector: DetectorSpec
         r, jac = kern.evaluate(m)
         return r, (lambda: jac().T)
 
-    res = levenberg_marquardt(fun, None, start, sigma=sigma, max_iter=max_iter, stol=STOL)
+    res = levenberg_marquardt(fun, None, start, sigma=sigma, max_iter=max_iter, stol=STOL, chord_test=True)
     nfev, njev, nit = res.nfev, res.njev, res.n_iter
     if loss != "linear":
         rw = res.residuals if sigma is None else res.residuals / sigma

@@ -388,7 +388,7 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
             start_full = start
     else:
         start_full = start
-    res = levenberg_marquardt(fun, None, start_full, sigma=sigma, max_iter=max_iter, stol=STOL)
+    res = levenberg_marquardt(fun, None, start_full, sigma=sigma, max_iter=max_iter, stol=STOL, chord_test=True)
     nfev, njev, nit = nfev + res.nfev, njev + res.njev, nit + res.n_iter
     f_used = None
     if loss != "linear":
