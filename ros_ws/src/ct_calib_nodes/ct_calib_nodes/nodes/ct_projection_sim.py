@@ -3,13 +3,16 @@
 Publishes ``/ct/detector/image`` (sensor_msgs/Image, mono16 counts or 32FC1
 transmission, frame_id ``ct_detector``) and ``/ct/stage/joint_states``
 (names [rotary, magnification], positions [alpha rad, reported SRD m]) with
-identical stamps, for every projection of every stage position. The truth
+identical stamps, for every projection of every stage position. The object
+is the reference object's spheres on their carbon-fibre support tube
+(``support_tube``; the tube is not in reference_object.yaml). The truth
 (geometry, error motions) never goes on a topic; it can be written to a file
 for tests and for a simulated independent reference measurement.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -17,6 +20,7 @@ import rclpy
 from rclpy.node import Node
 from sensor_msgs.msg import Image, JointState
 
+from ct_calib_nodes.core.phantom import CarbonTube
 from ct_calib_nodes.core.render import RenderSettings, render_projection
 from ct_calib_nodes.core.scenario import default_campaign
 from ct_calib_nodes.io.convert import image_from_array
@@ -38,6 +42,11 @@ PARAMS = {
     "exit_when_done": (True, "end the process after the last frame"),
     "truth_output": ("", "write the simulation truth here (YAML; for tests, never read by solvers) [path]"),
     "reference_output": ("", "write a simulated independent reference error map here (CSV) [path]"),
+    "support_tube": (True, "render the CFRP tube that carries the spheres (not part of reference_object.yaml; "
+                           "the solvers never see it) [-]"),
+    "tube_outer_radius_m": (0.036, "support tube outer radius [m]"),
+    "tube_wall_m": (0.001, "support tube wall thickness [m]"),
+    "tube_height_m": (0.110, "support tube length along the object's Y axis [m]"),
     "blur_sigma_px": (0.7, "detector blur, Gaussian sigma [px]"),
     "flat_field_counts": (0.0, "open-beam counts; 0 = the instrument file's value [counts]"),
     # hidden physics: off by default; the solvers are never told
@@ -54,6 +63,14 @@ class CtProjectionSim(Node):
         super().__init__("ct_projection_sim")
         self.p = p = declare_parameters(self, PARAMS)
         self.instrument, self.ref = load_ct_files(p)
+        if p["support_tube"]:
+            # reference_object.yaml lists the calibrated spheres only; the physical object also
+            # has the carbon-fibre tube they are glued to, which real frames show (faint bands,
+            # an elliptical end rim), so the simulator renders it too
+            r_out = float(p["tube_outer_radius_m"])
+            self.ref = dataclasses.replace(self.ref, tube=CarbonTube(
+                outer_radius_m=r_out, inner_radius_m=r_out - float(p["tube_wall_m"]),
+                height_m=float(p["tube_height_m"])))
         if p["encoding"] not in ("mono16", "32FC1"):
             raise ValueError(f"encoding must be mono16 or 32FC1, got {p['encoding']!r}")
         self.truth = default_campaign(int(p["n_positions"]), float(p["step_m"]), float(p["srd_first_m"]),
