@@ -68,6 +68,9 @@ def test_error_map_matches_truth(campaign_solution, campaign, static_k1):
         est, unc = em.as_truth_dict(), em.uncertainty_dict()
         for key in truth:
             z = (est[key] - truth[key]) / unc[key]
+            scale, unit = (1e6, "um") if key.endswith("_m") else (206264.80624709636, "arcsec")
+            print(f"{results[0].mode:6s} {key:18s} max|err| {np.max(np.abs(est[key] - truth[key])) * scale:8.3f} "
+                  f"median u {np.median(unc[key][1:]) * scale:8.3f} {unit:6s} max|z| {np.max(np.abs(z)):.2f}")
             assert np.all(np.abs(z) <= K_SIGMA), (results[0].mode, key, np.round(z, 2))
         assert np.allclose(em.pitch_arcsec, em.pitch_rad * 206264.80624709636)
         json.dumps(em.to_dict())
