@@ -226,7 +226,8 @@ def campaign_residuals(acc: CampaignAccumulator, static_x, centres_of_m, detecto
 # Frame processing: detection + identity, frame by frame (detector node and offline replay)
 
 REASON_FLAGS = {"overlap": 1, "edge_cut": 2, "not_a_sphere_size": 3, "not_a_sphere_shape": 3,
-                "not_a_sphere_contrast": 3, "fit_failed": 4, "ambiguous_identity": 5, "unmatched": 5,
+                "not_a_sphere_contrast": 3, "fit_failed": 4, "background_structure": 4, "ambiguous_identity": 5,
+                "unmatched": 5,
                 "not_initialised": 5}
 
 
