@@ -23,7 +23,13 @@ import os
 import sys
 import time
 
-import numpy as np
+# One BLAS thread for every contender (set before numpy loads OpenBLAS; override by exporting it).
+# With OpenBLAS's default threads on this 2-core machine, scipy's 'trf' (an SVD of the 31408 x 13
+# Jacobian per iteration) took 63-129 ms instead of ~35 ms and varied 10x from run to run: the
+# idle workers spin and fight the main thread. Comparing against that would flatter us.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "ros_ws", "src", "ct_calib_nodes"))
 
@@ -114,6 +120,7 @@ def main():
         scaling.append({"projections": m, "centres": s.obs.n_obs, "ms": round(t * 1e3, 2)})
         print(f"{m:11d} {s.obs.n_obs:8d} {t * 1e3:10.1f} {t * 1e6 / s.obs.n_obs:16.2f}")
     out = {
+        "openblas_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
         "static_n_centres": obs.n_obs, "static_ours_ms": round(t_ours * 1e3, 2),
         "static_scipy_fd_ms": round(t_scipy * 1e3, 2), "speedup": round(t_scipy / t_ours, 1),
         "static_scipy_trf_fd_ms": round(t_trf * 1e3, 2), "static_scipy_lm_analytic_jac_ms": round(t_lm_an * 1e3, 2), "speedup_vs_trf": round(t_trf / t_ours, 1),

@@ -123,6 +123,18 @@ def _to_pixels(xy, jac_xy, detector: DetectorSpec, want_jac):
 
 
 # --------------------------------------------------------------------------- static model
+def _cos_sin_runs(alpha):
+    """cos and sin of alpha (Q,), evaluated once per run of equal values (one per projection)."""
+    if alpha.size < 2:
+        return np.cos(alpha), np.sin(alpha)
+    start = np.empty(alpha.size, dtype=bool)
+    start[0] = True
+    np.not_equal(alpha[1:], alpha[:-1], out=start[1:])
+    run = np.cumsum(start) - 1
+    a = alpha[start]
+    return np.cos(a)[run], np.sin(a)[run]
+
+
 class StaticKernel:
     """The static model (eqs 1-3, App. A) precomputed for one observation set.
 
@@ -171,7 +183,7 @@ class StaticKernel:
         self.has_angle = any(t.stage == "angle" for t in self.terms)
         self.has_image = any(t.stage == "image" for t in self.terms)
         if not self.has_angle:
-            self._ca, self._sa = np.cos(obs.alpha_rad), np.sin(obs.alpha_rad)
+            self._ca, self._sa = _cos_sin_runs(obs.alpha_rad)
         self.c0, self.r0 = detector.centre_px
         self.pitch = detector.pixel_pitch_m
         self.observed = np.concatenate([obs.uv_px[:, 0], obs.uv_px[:, 1]])  # (2Q,) blocked

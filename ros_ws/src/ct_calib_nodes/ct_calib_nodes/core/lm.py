@@ -130,7 +130,15 @@ def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=
             return fun(x_), (lambda: fun_jac(x_)[1])
     inv_sig = None if sigma is None else 1.0 / np.asarray(sigma, dtype=float)
 
+    plain = loss == "linear" and inv_sig is None
+    ones = None
+
     def weigh(r):
+        nonlocal ones
+        if plain:                              # ordinary least squares: no per-residual weights
+            if ones is None or ones.size != r.size:
+                ones = np.ones_like(r)
+            return 0.5 * float(r @ r), ones
         rw = r if inv_sig is None else r * inv_sig
         z = (rw / f_scale) ** 2
         rho, rho1 = loss_rho(z, loss)

@@ -10,6 +10,7 @@ simulators build one from a known truth (see ``simulate_obs.py``).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -150,14 +151,14 @@ class CentreObservations:
         """Number of observations Q."""
         return int(self.uv_px.shape[0])
 
-    @property
+    @functools.cached_property
     def n_views(self) -> int:
-        """Number of distinct projections."""
+        """Number of distinct projections (computed once: the arrays are read-only)."""
         return _n_distinct(self.view_index)
 
-    @property
+    @functools.cached_property
     def n_spheres_seen(self) -> int:
-        """Number of distinct spheres observed."""
+        """Number of distinct spheres observed (computed once)."""
         return _n_distinct(self.sphere_index)
 
     def select(self, mask) -> "CentreObservations":
