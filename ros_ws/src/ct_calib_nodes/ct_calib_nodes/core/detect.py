@@ -222,6 +222,10 @@ class DetectionSettings:
             raise ValueError("edge_level must be in (0, 1)")
         if int(self.n_rays) < 8 or int(self.n_samples) < 8:
             raise ValueError("n_rays and n_samples must be >= 8")
+        if not (self.background_edge_gradient > 0 and 0 <= self.background_edge_min_fraction < 1
+                and self.background_edge_sigma_px >= 0):
+            raise ValueError("background_edge_gradient must be > 0, background_edge_min_fraction in [0, 1) "
+                             "and background_edge_sigma_px >= 0")
         if int(self.n_passes) < 1:
             raise ValueError("n_passes must be >= 1")
 
@@ -716,7 +720,8 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
         for i in corners:
             reject(i, "background_structure", "a horizontal background step (tube end rim) meets a stronger "
                                               "vertical one (wall band) across the shadow: no background fits")
-        cand = [i for i in cand if i not in set(corners)]
+        dropped = set(corners)
+        cand = [i for i in cand if i not in dropped]
 
     n_fits = 0
     if not cand:
@@ -796,8 +801,8 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
         ey = centre[:, 1, None] + sphi[None, :] * r_edge
         if st.vertical_background and pas == int(st.n_passes) - 1:
             # edge points where the background itself changes fast across columns (a tube-wall
-            # band edge): blur mixes shadow and band multiplicatively, dividing by the
-            # background cannot undo it, so those centres carry an extra column uncertainty
+            # band edge): pixel averaging and blur mix shadow and band multiplicatively, which
+            # dividing by the background cannot undo, so those centres carry extra column variance
             xi = np.clip(np.rint(ex).astype(np.intp), 2, cols - 3)
             yi = np.clip(np.rint(ey).astype(np.intp), 0, rows - 1)
             gb = np.abs(bg16[yi, xi + 2].astype(np.float32) - bg16[yi, xi - 2].astype(np.float32))

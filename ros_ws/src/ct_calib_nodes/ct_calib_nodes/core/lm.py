@@ -232,7 +232,6 @@ def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=
             try:
                 y = np.linalg.solve(np.linalg.cholesky(a), gc)
                 if abs(ratio - 1.0) <= 0.05 and float(y @ y) * dof <= stol ** 2 * 2.0 * cost:
-                    g = gc
                     status, message = 4, f"remaining step below {stol:g} standard deviations (chord test)"
                     break
             except np.linalg.LinAlgError:

@@ -369,8 +369,8 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
 
     nfev = njev = nit = 0
     if coarse is not None:
-        # Coarse to fine: converge on an even subset of the views first (a tenth of the cost per
-        # iteration), then the full problem starts within a few standard deviations of its
+        # Coarse to fine: converge on an even subset of the views first (20 of them: a small
+        # fraction of the cost per iteration), then the full problem starts within a few standard deviations of its
         # optimum and needs one Gauss-Newton step. The result is the full-data optimum either way
         # (same convergence tests); a failed coarse fit falls back to the data-derived start.
         ck = StaticKernel(coarse, centres, detector, terms)
