@@ -54,6 +54,8 @@ def test_sphere_detector_skips_bad_frames_and_keeps_running(start_node, ros_node
                 _stage(4, names=("x", "y"))))                 # wrong joint names
     bad.append((image_from_array(np.zeros((det.rows, det.cols), np.uint16), Time(sec=5), "ct_detector"),
                 _stage(5)))                                   # all dark
+    bad.append((image_from_array(good, Time(sec=7), "ct_detector"),
+                _stage(7, srd=1.084)))                        # object beyond the detector (SRD > SDD)
     for img, js in bad:
         pub_j.publish(js)
         pub_i.publish(img)
@@ -72,7 +74,8 @@ def test_sphere_detector_skips_bad_frames_and_keeps_running(start_node, ros_node
     assert "unsupported image encoding 'rgb8'" in log
     assert "ct_instrument.yaml says 1024x1024" in log
     assert "lack 'rotary' and 'magnification'" in log
-    assert log.count("skipped") >= 5
+    assert "bad_stage_reading" in log and "1.084 m" in log
+    assert log.count("skipped") >= 6
 
 
 def _observations_msg(sec, alpha, srd, ids, uv, nan_at=None):

@@ -305,8 +305,16 @@ class FrameProcessor:
     def push(self, stamp_ns: int, image, encoding: str, alpha_rad: float, srd_m: float) -> list:
         """Process one frame; returns the FrameResults now ready (0, 1, or a buffered batch).
 
-        Raises detect.FrameError for a frame that cannot be used (the caller logs and skips it).
+        Raises detect.FrameError for a frame that cannot be used (the caller logs and skips it),
+        including a stage reading no instrument can produce (non-finite, or the object at or
+        beyond the detector: SRD outside (0, SDD)).
         """
+        from .detect import FrameError  # noqa: PLC0415
+
+        if not (np.isfinite(alpha_rad) and np.isfinite(srd_m) and 0.0 < srd_m < self.sdd):
+            raise FrameError("bad_stage_reading", f"rotary angle {alpha_rad} rad, reported SRD {srd_m} m: the SRD "
+                                                  f"must be finite and between 0 and the source-to-detector "
+                                                  f"distance {self.sdd} m")
         det = self.detect(image, encoding, srd_m)      # may raise FrameError
         self.n_frames += 1
         out = []

@@ -103,6 +103,7 @@ FRAME_ERROR_REASONS = (
     "saturated",
     "uniform",
     "bad_flat_field",
+    "bad_stage_reading",
 )
 
 
@@ -114,7 +115,8 @@ class FrameError(ValueError):
     reason : str
         One of ``wrong_dtype``, ``wrong_encoding``, ``wrong_size``,
         ``non_finite``, ``all_dark``, ``saturated``, ``uniform``,
-        ``bad_flat_field``.
+        ``bad_flat_field``, ``bad_stage_reading`` (raised by the frame pipeline
+        for a stage reading no instrument can produce).
     """
 
     def __init__(self, reason: str, message: str):

@@ -53,12 +53,18 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--positions", type=int, default=6, help="stage positions (default 6)")
     ap.add_argument("--projections", type=int, default=24, help="projections per position (default 24)")
-    ap.add_argument("--step-mm", type=float, default=72.0, help="stage step [mm] (default 72)")
+    ap.add_argument("--step-mm", type=float, default=None,
+                    help="stage step [mm] (default: the paper's travel, SRD 364 to 724 mm, split evenly: "
+                         "72 mm for 6 positions, 20 mm for 19)")
     ap.add_argument("--rate", type=float, default=8.0, help="frame rate of the simulator [Hz]")
     ap.add_argument("--out", default="out", help="report directory root")
     ap.add_argument("--bags", default="bags", help="recording directory root")
     ap.add_argument("--timeout", type=float, default=900.0, help="give up after this long [s]")
     args = ap.parse_args(argv)
+    if args.positions < 2:
+        ap.error("--positions must be >= 2 (one static position and at least one error-motion position)")
+    if args.step_mm is None:
+        args.step_mm = 360.0 / (args.positions - 1)
 
     import rclpy  # noqa: PLC0415
     from metro_msgs.msg import CtGeometry, ErrorMap, SphereObservationArray  # noqa: PLC0415
@@ -114,6 +120,7 @@ def main(argv=None):
     node.create_subscription(ErrorMap, "/ct/error_map/single", lambda m: on_map("single", m), QOS_LATCHED)
     node.create_subscription(CtGeometry, "/ct/geometry", lambda m: latest.__setitem__("geometry", m), QOS_LATCHED)
     ok = False
+    dead = []
     last_print = 0.0
     from rclpy.executors import SingleThreadedExecutor  # noqa: PLC0415
     executor = SingleThreadedExecutor()   # persistent: every ready subscription served in turn
@@ -133,6 +140,11 @@ def main(argv=None):
             dead = [k for k, (p, _l) in procs.items() if p.poll() not in (None, 0)]
             if dead:
                 print(f"[demo] node(s) {dead} exited with an error; see {logs}")
+                for k in dead:
+                    procs[k][1].flush()
+                    tail = pathlib.Path(procs[k][1].name).read_text(errors="replace").strip().splitlines()[-3:]
+                    for line in tail:
+                        print(f"[demo]   {k}: {line}")
                 break
             if time.monotonic() - last_print > 15:
                 last_print = time.monotonic()
@@ -148,7 +160,8 @@ def main(argv=None):
         rclpy.try_shutdown()
     wall = time.monotonic() - t_start
     if not ok:
-        print(f"[demo] FAILED: the error map did not complete within {args.timeout:.0f} s; logs in {logs}")
+        why = "a node exited with an error" if dead else f"the error map did not complete within {args.timeout:.0f} s"
+        print(f"[demo] FAILED: {why}; logs in {logs}")
         return 1
     bag_mb = sum(f.stat().st_size for f in bag.glob("*")) / 1e6 if bag.exists() else 0.0
     index = write_outputs(out, latest, wall, bag, bag_mb)

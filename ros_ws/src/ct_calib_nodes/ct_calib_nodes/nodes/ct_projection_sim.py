@@ -73,8 +73,14 @@ class CtProjectionSim(Node):
                 height_m=float(p["tube_height_m"])))
         if p["encoding"] not in ("mono16", "32FC1"):
             raise ValueError(f"encoding must be mono16 or 32FC1, got {p['encoding']!r}")
-        self.truth = default_campaign(int(p["n_positions"]), float(p["step_m"]), float(p["srd_first_m"]),
-                                      self.instrument.sdd_reported_m)
+        n_pos, step, srd0 = int(p["n_positions"]), float(p["step_m"]), float(p["srd_first_m"])
+        srd_last = srd0 + step * (n_pos - 1)
+        reach = float(np.max(np.linalg.norm(self.ref.centres_of_m, axis=1))) + float(np.max(self.ref.diameters_m))
+        if n_pos < 1 or min(srd0, srd_last) - reach <= 0.0 or max(srd0, srd_last) + reach >= self.instrument.sdd_reported_m:
+            raise ValueError(f"campaign SRD {srd0:.3f} to {srd_last:.3f} m ({n_pos} positions, step {step:.4f} m) puts "
+                             f"the object (reach {reach:.3f} m) outside the space between the source and the "
+                             f"detector at {self.instrument.sdd_reported_m:.3f} m")
+        self.truth = default_campaign(n_pos, step, srd0, self.instrument.sdd_reported_m)
         flat = float(p["flat_field_counts"]) or self.instrument.flat_field_counts or 50000.0
         self.settings = RenderSettings(
             flat_field_counts=flat, blur_sigma_px=float(p["blur_sigma_px"]),

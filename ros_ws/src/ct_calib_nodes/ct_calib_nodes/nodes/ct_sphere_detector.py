@@ -76,6 +76,10 @@ class CtSphereDetector(Node):
             self.counts["bad_frames"] += 1
             self.get_logger().warning(f"frame {t}: skipped ({self.counts['bad_frames']} bad so far): {exc}")
             return
+        except ValueError as exc:       # anything else the core refuses: never take the node down
+            self.counts["bad_frames"] += 1
+            self.get_logger().error(f"frame {t}: skipped, the frame pipeline refused it: {exc}")
+            return
         for fr in results:
             self._publish(fr)
 

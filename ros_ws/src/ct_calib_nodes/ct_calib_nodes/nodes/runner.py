@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 import time
 
 import rclpy
@@ -28,7 +29,12 @@ def run_node(node_factory, args=None) -> int:
     node = None
     code = 0
     try:
-        node = node_factory()
+        try:
+            node = node_factory()
+        except ValueError as exc:       # bad parameters or input files: say what, exit 2, no traceback
+            print(f"[{getattr(node_factory, '__name__', 'node')}] configuration error: {exc}", file=sys.stderr,
+                  flush=True)
+            return 2
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
