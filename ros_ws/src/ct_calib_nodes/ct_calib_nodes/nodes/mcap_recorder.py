@@ -121,10 +121,10 @@ def main(args=None):
     node = McapRecorder()
     # One executor for the whole run. rclpy.spin_once(node) builds a fresh wait
     # set on every call and serves the first ready subscription in topic order,
-    # so under load a backlog of frames starves the joint states and the file
-    # holds frames far from their stage readings (a truncated recording then
-    # has frames without partners). A persistent executor serves every ready
-    # subscription of a wait before waiting again: round robin.
+    # so under load a backlog of frames can starve the joint states. A
+    # persistent executor serves every ready subscription of a wait before
+    # waiting again: round robin. (DDS repair delays can still reorder: see
+    # the module docstring.)
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     try:
