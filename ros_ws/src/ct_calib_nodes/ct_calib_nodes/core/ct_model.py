@@ -135,6 +135,15 @@ def _cos_sin_runs(alpha):
     return np.cos(a)[run], np.sin(a)[run]
 
 
+def lm_function(kernel):
+    """A StaticKernel or MotionKernel as levenberg_marquardt's ``fun``: x -> (r, lazy J), with
+    J (m, n) the transpose of the kernel's blocked (n, m) Jacobian."""
+    def fun(x):
+        r, jac = kernel.evaluate(x)
+        return r, (lambda: jac().T)
+    return fun
+
+
 class StaticKernel:
     """The static model (eqs 1-3, App. A) precomputed for one observation set.
 
@@ -452,7 +461,7 @@ class MotionKernel:
         ra = np.cross(axis, a_s)[obs.sphere_index].T                 # (3, Q)
         ar = (a_s @ axis)[obs.sphere_index]                          # (Q,)
         at = a_s[obs.sphere_index].T                                 # (3, Q)
-        c, s = np.cos(alpha), np.sin(alpha)
+        c, s = _cos_sin_runs(alpha)
         self.e_t = at * c + ra * s + np.outer(axis, ar * (1.0 - c))  # (3, Q)
         self.e = self.e_t.T
         self.q = obs.n_obs

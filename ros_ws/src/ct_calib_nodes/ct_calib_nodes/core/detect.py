@@ -718,7 +718,7 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
         cand = keep
 
     if st.vertical_background and st.repair_horizontal_steps and cand:
-        _, corners = _repair_horizontal_steps(trans, bg16, stats, cand, rows, cols)
+        corners = _repair_horizontal_steps(trans, bg16, stats, cand, rows, cols)
         for i in corners:
             reject(i, "background_structure", "a horizontal background step (tube end rim) meets a stronger "
                                               "vertical one (wall band) across the shadow: no background fits")
@@ -912,10 +912,10 @@ def _repair_horizontal_steps(trans, bg16, stats, cand, rows, cols, min_step=0.01
     background in the shadow's box is replaced by the row-by-row linear interpolation between
     the closing's values in the columns just left and right of the box (exact there: those
     columns do not cross the shadow) and that box of ``trans`` is renormalised, in place.
-    Returns the number of repaired shadows and the candidates where a horizontal step meets a
-    stronger vertical one (a corner of rim and band), for which no background model holds.
+    Returns the candidates where a horizontal step meets a stronger vertical one (a corner of
+    rim and band), for which no background model holds.
     """
-    n, corners = 0, []
+    corners = []
     for i in cand:
         x0, y0, w, h = (int(v) for v in stats[i, :4])
         m = max(3, int(0.3 * max(w, h)) + 1)
@@ -936,8 +936,7 @@ def _repair_horizontal_steps(trans, bg16, stats, cand, rows, cols, min_step=0.01
             continue
         f = np.linspace(0.0, 1.0, xr - xl + 1, dtype=np.float32)[None, :]
         trans[ya:yb, xl:xr + 1] *= old / np.maximum(left + (right - left) * f, 1.0)
-        n += 1
-    return n, corners
+    return corners
 
 
 def _assemble(accepted, rej_c, rej_a, rej_r, rej_d, bg, n_fits, sdd_px, pp, shape, message):

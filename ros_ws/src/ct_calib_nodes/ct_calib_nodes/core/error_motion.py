@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .ct_model import MotionKernel
+from .ct_model import MotionKernel, lm_function
 from .geometry import MOTION_PARAM_NAMES, MOTION_PARAM_UNITS, DetectorFrameGeometry, DetectorSpec, static_to_detector_frame
 from .lm import LOSSES, STOL, correlation_from_covariance, covariance_from_jacobian, levenberg_marquardt
 from .observations import CentreObservations
@@ -223,11 +223,7 @@ def solve_error_motion(obs_k: CentreObservations, static, detector: DetectorSpec
     # blocked order (all u, then all v) with a lazy Jacobian; interleaved again for the result
     kern = MotionKernel(geom, obs, detector, terms, term_params)
     sigma = None if obs.sigma_px is None else np.concatenate([obs.sigma_px, obs.sigma_px])
-
-    def fun(m):
-        r, jac = kern.evaluate(m)
-        return r, (lambda: jac().T)
-
+    fun = lm_function(kern)
     res = levenberg_marquardt(fun, None, start, sigma=sigma, max_iter=max_iter, stol=STOL, chord_test=True)
     nfev, njev, nit = res.nfev, res.njev, res.n_iter
     if loss != "linear":

@@ -161,6 +161,15 @@ def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=
     dof = max(r.size - x.size, 1)
     chord = stol is not None and chord_test and not scaled
 
+    def gn_sq(chol, grad):
+        """grad^T A^-1 grad from the Cholesky factor of A."""
+        y = np.linalg.solve(chol, grad)
+        return float(y @ y)
+
+    def within_stol(gn2, cost_):
+        """The Gauss-Newton step of squared A-norm gn2 is shorter than stol sd (s^2 = 2 cost / dof)."""
+        return stol is not None and gn2 * dof <= stol ** 2 * 2.0 * cost_
+
     def normal(r, jac, sw):
         if scaled:
             jw = jac * sw[:, None]
@@ -185,16 +194,17 @@ def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=
         # With stol: stop when that step, in the metric of the estimate's own covariance
         # s^2 A^-1 (s^2 = 2 cost / (m - n)), is shorter than stol standard deviations.
         try:
-            y = np.linalg.solve(np.linalg.cholesky(a), g)
-            gn2 = float(y @ y)                       # g^T A^-1 g = 2 x predicted decrease
+            chol_a = np.linalg.cholesky(a)           # also serves the chord test below
+        except np.linalg.LinAlgError:
+            chol_a = None
+        if chol_a is not None:
+            gn2 = gn_sq(chol_a, g)                   # g^T A^-1 g = 2 x predicted decrease
             if 0.5 * gn2 <= ftol * cost:
                 status, message = 1, "predicted cost decrease below ftol"
                 break
-            if stol is not None and gn2 * dof <= stol ** 2 * 2.0 * cost:
+            if within_stol(gn2, cost):
                 status, message = 4, f"remaining step below {stol:g} standard deviations"
                 break
-        except np.linalg.LinAlgError:
-            pass
         while True:
             lhs = a + mu * np.diag(dscale ** 2)
             try:
@@ -228,14 +238,9 @@ def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=
             # and the step still available from x with the PREVIOUS J^T J and gradient J^T r(x)
             # is below stol sd. The covariance then uses J at the previous point, one small step
             # away: sds and correlations agree with those of J at x to ~3e-4 (tested).
-            gc = jac.T @ r
-            try:
-                y = np.linalg.solve(np.linalg.cholesky(a), gc)
-                if abs(ratio - 1.0) <= 0.05 and float(y @ y) * dof <= stol ** 2 * 2.0 * cost:
-                    status, message = 4, f"remaining step below {stol:g} standard deviations (chord test)"
-                    break
-            except np.linalg.LinAlgError:
-                pass
+            if chol_a is not None and abs(ratio - 1.0) <= 0.05 and within_stol(gn_sq(chol_a, jac.T @ r), cost):
+                status, message = 4, f"remaining step below {stol:g} standard deviations (chord test)"
+                break
         jac = jac_new()
         njev += 1
         nfev += extra

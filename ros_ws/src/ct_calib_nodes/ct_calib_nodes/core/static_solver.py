@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .ct_model import StaticKernel, param_names, param_units
+from .ct_model import StaticKernel, lm_function, param_names, param_units
 from .geometry import DetectorFrameGeometry, DetectorSpec, static_to_detector_frame
 from .lm import LOSSES, STOL, correlation_from_covariance, covariance_from_jacobian, levenberg_marquardt
 from .observations import CentreObservations
@@ -362,10 +362,7 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
     # the transpose of a C-contiguous (n, 2Q) array; results are interleaved below.
     kern = StaticKernel(obs, centres, detector, terms)
     sigma = None if obs.sigma_px is None else kern.blocked_weights(obs.sigma_px)
-
-    def fun(x):
-        r, jac = kern.evaluate(x)
-        return r, (lambda: jac().T)
+    fun = lm_function(kern)
 
     nfev = njev = nit = 0
     if coarse is not None:
@@ -374,13 +371,8 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
         # optimum and needs one Gauss-Newton step. The result is the full-data optimum either way
         # (same convergence tests); a failed coarse fit falls back to the data-derived start.
         ck = StaticKernel(coarse, centres, detector, terms)
-
-        def fun_c(x):
-            r, jac = ck.evaluate(x)
-            return r, (lambda: jac().T)
-
         sigma_c = None if coarse.sigma_px is None else ck.blocked_weights(coarse.sigma_px)
-        cres = levenberg_marquardt(fun_c, None, start, sigma=sigma_c, max_iter=max_iter, stol=STOL)
+        cres = levenberg_marquardt(lm_function(ck), None, start, sigma=sigma_c, max_iter=max_iter, stol=STOL)
         nfev, njev, nit = cres.nfev, cres.njev, cres.n_iter
         if cres.success and np.all(np.isfinite(cres.x)):
             start_full = cres.x
