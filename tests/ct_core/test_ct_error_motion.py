@@ -5,11 +5,11 @@ import json
 import numpy as np
 import pytest
 
-from ct_calib_nodes.core.error_map import error_map
+from ct_calib_nodes.core.error_map import error_map, joint_motion_covariance
 from ct_calib_nodes.core.error_motion import solve_error_motion
 from ct_calib_nodes.core.simulate_obs import simulate_observations
 
-from ct_core_settings import SIGMA_PX
+from ct_core_settings import CONTOUR_RADIUS_M, SIGMA_PX
 
 # Same argument as the static tests: estimates ~ Normal(truth, cov) in the
 # linear regime; 4.5 sd per component (6 components x 19 positions x 2 modes:
@@ -23,7 +23,7 @@ def campaign_solution(campaign, centres, detector, alphas, static_k1):
     multi, single = [], []
     for k in range(len(campaign.srd_reported_m)):
         sim = simulate_observations(campaign.static_w, centres, detector, alphas, rng, SIGMA_PX,
-                                    motion=campaign.motions[k])
+                                    motion=campaign.motions[k], contour_radius_m=CONTOUR_RADIUS_M)
         args = (sim.obs, static_k1, detector, campaign.srd_reported_m[k], campaign.srd_reported_m[0])
         multi.append(solve_error_motion(*args, mode="multi"))
         single.append(solve_error_motion(*args, mode="single"))
@@ -58,25 +58,38 @@ def test_single_projection_agrees_with_multi(campaign_solution, campaign):
 
 
 def test_error_map_matches_truth(campaign_solution, campaign, static_k1):
+    """Both definitions against the truth built from the stage model (scenario.py, no error_map call)."""
     multi, single = campaign_solution
-    truth = campaign.error_map()
-    for results in (multi, single):
-        em = error_map(campaign.srd_reported_m, np.array([r.x for r in results]),
-                       np.array([r.covariance for r in results]),
-                       static_sensitivities=np.array([r.static_sensitivity for r in results]),
-                       static_covariance=static_k1.covariance)
-        est, unc = em.as_truth_dict(), em.uncertainty_dict()
-        for key in truth:
-            z = (est[key] - truth[key]) / unc[key]
-            scale, unit = (1e6, "um") if key.endswith("_m") else (206264.80624709636, "arcsec")
-            print(f"{results[0].mode:6s} {key:18s} max|err| {np.max(np.abs(est[key] - truth[key])) * scale:8.3f} "
-                  f"median u {np.median(unc[key][1:]) * scale:8.3f} {unit:6s} max|z| {np.max(np.abs(z)):.2f}")
-            assert np.all(np.abs(z) <= K_SIGMA), (results[0].mode, key, np.round(z, 2))
-        assert np.allclose(em.pitch_arcsec, em.pitch_rad * 206264.80624709636)
-        json.dumps(em.to_dict())
+    for definition in ("travel", "detector"):
+        truth = campaign.error_map(definition)
+        for results in (multi, single):
+            joint = joint_motion_covariance(np.array([r.covariance for r in results]),
+                                            np.array([r.static_sensitivity for r in results]), static_k1.covariance)
+            em = error_map(campaign.srd_reported_m, np.array([r.x for r in results]), joint, definition=definition)
+            est, unc = em.as_truth_dict(), em.uncertainty_dict()
+            for key in truth:
+                z = (est[key] - truth[key]) / np.where(unc[key] > 0, unc[key], np.inf)
+                scale, unit = (1e6, "um") if key.endswith("_m") else (206264.80624709636, "arcsec")
+                print(f"{definition:8s} {results[0].mode:6s} {key:18s} "
+                      f"max|err| {np.max(np.abs(est[key] - truth[key])) * scale:8.3f} "
+                      f"median u {np.median(unc[key][1:]) * scale:8.3f} {unit:6s} max|z| {np.max(np.abs(z)):.2f}")
+                assert np.all(np.abs(z) <= K_SIGMA), (definition, results[0].mode, key, np.round(z, 2))
+            # the fitted travel direction is the stage's (the truth's) within its uncertainty
+            dang = np.arccos(min(1.0, float(em.travel_direction_df @ campaign.travel_direction_df)))
+            assert dang <= K_SIGMA * em.u_angle_travel_normal_rad + 1e-9
+            assert abs(em.angle_travel_normal_rad - campaign.angle_travel_normal_rad) <= \
+                K_SIGMA * em.u_angle_travel_normal_rad
+            assert np.allclose(em.pitch_arcsec, em.pitch_rad * 206264.80624709636)
+            json.dumps(em.to_dict())
+    # the two positioning definitions differ by the cosine error (~27 um at the far end here)
+    t = campaign.error_map("travel")["positioning_m"] - campaign.error_map("detector")["positioning_m"]
+    assert abs(t[-1]) > 20e-6
     # the joint treatment matters: independent positions overstate straightness uncertainty
     naive = error_map(campaign.srd_reported_m, np.array([r.x for r in multi]),
                       np.array([r.covariance_total for r in multi]))
+    joint = joint_motion_covariance(np.array([r.covariance for r in multi]),
+                                    np.array([r.static_sensitivity for r in multi]), static_k1.covariance)
+    em = error_map(campaign.srd_reported_m, np.array([r.x for r in multi]), joint)
     assert np.median(naive.u_straightness_x_m[1:] / em.u_straightness_x_m[1:]) > 1.0
 
 
@@ -84,18 +97,23 @@ def test_error_map_uncertainty_linear_algebra():
     """Straightness of a pure line is zero; uncertainties follow (I - H) C (I - H)^T."""
     srd = 0.364 + 0.02 * np.arange(5)
     m = np.zeros((5, 6))
-    m[:, 0] = 1e-3 + 2e-3 * (srd - srd[0])
+    m[:, 0] = 2e-3 * (srd - srd[0])
     m[:, 2] = (srd - srd[0]) + 1e-5
+    m[0] = 0.0
     cov = np.tile(np.eye(6) * 1e-12, (5, 1, 1))
-    em = error_map(srd, m, cov)
-    assert np.allclose(em.straightness_x_m, 0, atol=1e-15)
-    assert np.allclose(em.positioning_m, 1e-5)
+    cov[0] = 0.0
+    em = error_map(srd, m, cov, definition="detector")
+    assert np.allclose(em.straightness_x_m[1:], 0, atol=1e-9)
+    assert np.allclose(em.positioning_m[1:], -1e-5)        # travelled MORE than indexed: negative
     a = np.stack([np.ones(5), srd - srd[0]], axis=1)
     r = np.eye(5) - a @ np.linalg.pinv(a)
-    assert np.allclose(em.u_straightness_x_m, np.sqrt(np.diag(r @ r.T) * 1e-12))
-    assert np.allclose(em.u_positioning_m, 1e-6)
+    c = np.diag([0.0] + [1e-12] * 4)
+    assert np.allclose(em.u_straightness_x_m, np.sqrt(np.diag(r @ c @ r.T)), rtol=1e-5)
+    assert np.allclose(em.u_positioning_m[1:], 1e-6, rtol=1e-6)
     with pytest.raises(ValueError, match="motions"):
         error_map(srd, m[:, :5])
+    with pytest.raises(ValueError, match="definition"):
+        error_map(srd, m, definition="iso")
 
 
 def test_single_projection_with_too_few_points(sim_k1, static_k1, detector, campaign):
@@ -126,7 +144,7 @@ def test_campaign_residuals_follow_the_noise(campaign_solution, campaign, centre
     acc = CampaignAccumulator()
     for k in range(3):
         sim = simulate_observations(campaign.static_w, centres, detector, alphas, rng, SIGMA_PX,
-                                    motion=campaign.motions[k])
+                                    motion=campaign.motions[k], contour_radius_m=CONTOUR_RADIUS_M)
         o = sim.obs
         for v in np.unique(o.view_index):
             sel = o.view_index == v

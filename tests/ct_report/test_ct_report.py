@@ -4,8 +4,7 @@ Inputs are built from the truth scenario (scenario.default_campaign): the
 true error map, noisy "multi" / "single" series with stated uncertainties,
 the truth static parameters with a seeded covariance, and seeded residuals.
 No solver is involved; the tests check that the report shows exactly the
-numbers it was given and that the uncertainty propagation of
-error_map_from_motions is right.
+numbers it was given and that error_map's uncertainty propagation is right.
 """
 
 import html
@@ -16,6 +15,7 @@ import numpy as np
 import pytest
 
 from ct_calib_nodes.core import geometry as g
+from ct_calib_nodes.core.error_map import ErrorMap, error_map
 from ct_calib_nodes.core import report as rp
 from ct_calib_nodes.core import scenario as sc
 
@@ -37,11 +37,12 @@ def make_inputs(seed=3):
     u_multi = np.tile([2e-6, 2e-6, 20e-6, 2 * ARCSEC, 30 * ARCSEC, 1 * ARCSEC], (k, 1))
     u_multi[0] = 0.0                                     # k = 1 is the datum
     u_single = 3.0 * u_multi
-    multi = rp.error_map_from_motions("multi", camp.srd_reported_m,
-                                      camp.motions + rng.normal(size=(k, 6)) * u_multi, u_multi)
-    single = rp.error_map_from_motions("single", camp.srd_reported_m,
-                                       camp.motions + rng.normal(size=(k, 6)) * u_single, u_single)
-    ref = rp.ErrorMapSeries("reference", camp.srd_reported_m, **camp.error_map())
+    cov = lambda u: np.einsum("kj,ij->kij", u ** 2, np.eye(6))  # noqa: E731
+    multi = error_map(camp.srd_reported_m, camp.motions + rng.normal(size=(k, 6)) * u_multi, cov(u_multi),
+                      name="multi")
+    single = error_map(camp.srd_reported_m, camp.motions + rng.normal(size=(k, 6)) * u_single, cov(u_single),
+                       name="single")
+    ref = ErrorMap.reference("reference", camp.srd_reported_m, **camp.error_map("travel"))
     u_w = np.r_[1e-5, 1e-5, 1e-5, 2e-5, 1e-4, 1e-4, 1e-4, 1e-5, 1e-5, 1e-5, 1e-4, 1e-4, 1e-4]
     a = rng.normal(size=(13, 13))
     corr = a @ a.T
@@ -67,17 +68,18 @@ def full_report(tmp_path_factory):
     return out, index, (camp, multi, single, ref, table, res, meta)
 
 
-def test_error_map_from_motions_matches_scenario():
+def test_error_map_matches_scenario():
     camp = sc.default_campaign()
-    s = rp.error_map_from_motions("truth", camp.srd_reported_m, camp.motions)
-    truth = camp.error_map()
-    for comp in rp.COMPONENTS:
-        assert np.allclose(s.values(comp[0]), truth[comp[0]], rtol=0, atol=1e-15), comp[0]
-    assert s.u_positioning_m is None
+    for definition in ("travel", "detector"):
+        s = error_map(camp.srd_reported_m, camp.motions, definition=definition, name="truth")
+        truth = camp.error_map(definition)
+        for comp in rp.COMPONENTS:
+            assert np.allclose(s.values(comp[0]), truth[comp[0]], rtol=0, atol=1e-15), comp[0]
+        assert s.u_positioning_m is None and s.definition == definition
 
 
 def test_error_map_uncertainty_propagation_monte_carlo():
-    """Propagated u of the detrended straightness vs the spread of 4000 seeded draws.
+    """Propagated u of the straightness and positioning vs the spread of 4000 seeded draws.
 
     The sample std of N = 4000 normal draws has relative standard error
     1/sqrt(2(N-1)) = 1.1 %; 6 % is > 5 standard errors.
@@ -86,13 +88,18 @@ def test_error_map_uncertainty_propagation_monte_carlo():
     camp = sc.default_campaign()
     k = camp.motions.shape[0]
     s_motion = np.tile([3e-6, 5e-6, 1e-5, 1e-5, 1e-5, 1e-5], (k, 1)) * (1 + np.arange(k)[:, None] / k)
-    s = rp.error_map_from_motions("x", camp.srd_reported_m, camp.motions, s_motion)
-    draws = np.array([rp.error_map_from_motions("x", camp.srd_reported_m,
-                                                camp.motions + rng.normal(size=(k, 6)) * s_motion)
-                      .straightness_x_m for _ in range(4000)])
-    assert np.allclose(draws.std(axis=0), s.u_straightness_x_m, rtol=0.06)
-    assert np.array_equal(s.u_positioning_m, s_motion[:, 2])
-    assert np.array_equal(s.u_yaw_rad, s_motion[:, 4])
+    s_motion[0] = 0.0
+    cov = np.einsum("kj,ij->kij", s_motion ** 2, np.eye(6))
+    for definition in ("travel", "detector"):
+        s = error_map(camp.srd_reported_m, camp.motions, cov, definition=definition)
+        draws = [error_map(camp.srd_reported_m, camp.motions + rng.normal(size=(k, 6)) * s_motion,
+                           definition=definition) for _ in range(4000)]
+        for comp in ("straightness_x_m", "straightness_y_m", "positioning_m"):
+            sd = np.array([d.values(comp) for d in draws]).std(axis=0)
+            assert np.allclose(sd[1:], s.uncertainty(comp)[1:], rtol=0.06), (definition, comp)
+        assert np.allclose(s.u_yaw_rad, s_motion[:, 4])
+    # the paper's positioning is reading - dz: its u is u(dz) exactly
+    assert np.allclose(s.u_positioning_m, s_motion[:, 2])
 
 
 def test_report_writes_all_files(full_report):
@@ -155,9 +162,9 @@ def test_error_map_numbers_match_inputs(full_report):
     em = [t for t in tables if t[0][0] == "SRD [mm]"]
     assert len(em) == 2
     for tab, s in zip(em, (multi, single)):
-        assert len(tab) - 1 == s.srd_m.size
+        assert len(tab) - 1 == s.srd_reported_m.size
         for i, row in enumerate(tab[1:]):
-            assert float(row[0]) == pytest.approx(s.srd_m[i] * 1e3, rel=1e-6)
+            assert float(row[0]) == pytest.approx(s.srd_reported_m[i] * 1e3, rel=1e-6)
             for (comp, _, _, f, _), cell in zip(rp.COMPONENTS, row[1:]):
                 val, unc = (float(x) for x in cell.split(" ± "))
                 # 4 decimals printed in µm / arcsec: absolute agreement 5e-5 display units.
@@ -195,8 +202,9 @@ def test_delta_plot_only_with_reference(full_report, tmp_path):
 
 
 def test_reference_interpolation():
-    ref = rp.ErrorMapSeries("ref", [0.4, 0.5], [0.0, 1e-4], [0.0, 0.0], [0.0, 0.0], [0.0, 2e-5],
-                            [0.0, 0.0], [np.nan, np.nan])
+    ref = ErrorMap.reference("ref", [0.4, 0.5], positioning_m=[0.0, 1e-4], straightness_x_m=[0.0, 0.0],
+                             straightness_y_m=[0.0, 0.0], pitch_rad=[0.0, 2e-5], yaw_rad=[0.0, 0.0],
+                             roll_rad=[np.nan, np.nan])
     v = rp._reference_at(ref, "positioning_m", np.array([0.39, 0.4, 0.45, 0.5, 0.6]))
     assert np.allclose(v, [np.nan, 0.0, 5e-5, 1e-4, np.nan], equal_nan=True)
     assert np.all(np.isnan(rp._reference_at(ref, "roll_rad", np.array([0.45]))))
@@ -204,7 +212,7 @@ def test_reference_interpolation():
 
 def test_read_reference_csv_and_yaml(tmp_path):
     camp = sc.default_campaign()
-    truth = camp.error_map()
+    truth = camp.error_map("travel")
     srd = camp.srd_reported_m
     lines = ["# laser interferometer + electronic level, units SI",
              "srd_m,positioning_m,straightness_x_m,pitch_rad,yaw_rad,roll_rad"]
@@ -217,7 +225,7 @@ def test_read_reference_csv_and_yaml(tmp_path):
     p.write_text("\n".join(lines) + "\n")
     r = rp.read_reference_error_map(p)
     assert r.name == "reference" and r.u_pitch_rad is None
-    assert np.array_equal(r.srd_m, srd)
+    assert np.array_equal(r.srd_reported_m, srd) and r.definition == "travel"
     assert np.array_equal(r.positioning_m, truth["positioning_m"])
     assert np.all(np.isnan(r.straightness_y_m))                # column absent
     assert np.isnan(r.roll_rad[3]) and np.array_equal(np.delete(r.roll_rad, 3), np.delete(truth["roll_rad"], 3))
@@ -241,11 +249,13 @@ def test_read_reference_csv_and_yaml(tmp_path):
 
 def test_input_checks():
     with pytest.raises(ValueError, match="positioning_m"):
-        rp.ErrorMapSeries("x", [0.1, 0.2], [0.0], [0, 0], [0, 0], [0, 0], [0, 0], [0, 0])
+        ErrorMap("x", "travel", [0.1, 0.2], [0.0], [0, 0], [0, 0], [0, 0], [0, 0], [0, 0])
     with pytest.raises(ValueError, match="u_pitch_rad"):
-        rp.ErrorMapSeries("x", [0.1], [0.0], [0.0], [0.0], [0.0], [0.0], [0.0], u_pitch_rad=[-1.0])
-    with pytest.raises(ValueError, match="srd_m"):
-        rp.ErrorMapSeries("x", [np.nan], [0.0], [0.0], [0.0], [0.0], [0.0], [0.0])
+        ErrorMap("x", "travel", [0.1], [0.0], [0.0], [0.0], [0.0], [0.0], [0.0], u_pitch_rad=[-1.0])
+    with pytest.raises(ValueError, match="srd_reported_m"):
+        ErrorMap("x", "travel", [np.nan], [0.0], [0.0], [0.0], [0.0], [0.0], [0.0])
+    with pytest.raises(ValueError, match="definition"):
+        ErrorMap("x", "iso", [0.1], [0.0], [0.0], [0.0], [0.0], [0.0], [0.0])
     with pytest.raises(ValueError, match="correlation"):
         rp.ParameterTable(("a", "b"), ("m", "m"), [1.0, 2.0], [0.1, 0.1], correlation=[[1.0, 2.0], [2.0, 1.0]])
     with pytest.raises(ValueError, match="view_index"):

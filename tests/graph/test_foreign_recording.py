@@ -109,13 +109,14 @@ def test_foreign_recording_replays_and_recovers_truth(tmp_path):
     z = (x[:13] - camp.static_w) / sd[:13]
     assert np.all(np.abs(z) < 4.5), dict(zip(r["static"]["names"], np.round(z, 2)))
     # error map (multi): within the tolerances and explained by the reported uncertainty
-    truth = camp.error_map()
-    em = r["error_maps"]["multi"]
-    assert em["positions"] == list(range(N_POS))
-    for key, tol, scale in (("positioning_m", 10e-6, 1.0), ("straightness_x_m", 3e-6, 1.0),
-                            ("straightness_y_m", 3e-6, 1.0), ("pitch_rad", 3.0, 206264.8),
-                            ("yaw_rad", 5.0, 206264.8), ("roll_rad", 3.0, 206264.8)):
-        err = (np.asarray(em[key]) - truth[key]) * scale
-        u = np.asarray(em["u_" + key]) * scale
-        assert np.max(np.abs(err)) < tol, (key, err)
-        assert np.all(np.abs(err[1:]) < 4.5 * u[1:] + 1e-3 * tol), (key, err, u)
+    for definition in ("travel", "detector"):
+        truth = camp.error_map(definition)
+        em = r["error_maps"]["multi"][definition]
+        assert em["positions"] == list(range(N_POS)) and em["definition"] == definition
+        for key, tol, scale in (("positioning_m", 10e-6, 1.0), ("straightness_x_m", 3e-6, 1.0),
+                                ("straightness_y_m", 3e-6, 1.0), ("pitch_rad", 3.0, 206264.8),
+                                ("yaw_rad", 5.0, 206264.8), ("roll_rad", 3.0, 206264.8)):
+            err = (np.asarray(em[key]) - truth[key]) * scale
+            u = np.asarray(em["u_" + key]) * scale
+            assert np.max(np.abs(err)) < tol, (definition, key, err)
+            assert np.all(np.abs(err[1:]) < 4.5 * u[1:] + 1e-3 * tol), (definition, key, err, u)

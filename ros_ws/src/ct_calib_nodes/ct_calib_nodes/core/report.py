@@ -3,11 +3,12 @@
 Inputs are plain arrays (no solver objects), so the report can be written
 from a live solve, an offline replay or a test alike:
 
-* :class:`ErrorMapSeries`: an error map (positioning, X/Y straightness,
-  pitch, yaw, roll vs instrument-reported SRD) with standard uncertainties,
-  e.g. "multi" (all projections) and "single" (first projection only); the
-  same class without uncertainties holds an independent reference
-  (laser interferometer / electronic level, :func:`read_reference_error_map`).
+* error maps are :class:`error_map.ErrorMap` (the one type of the project): a
+  solved map (positioning, X/Y straightness, pitch, yaw, roll vs
+  instrument-reported SRD, with standard uncertainties; "multi" and "single",
+  in the "travel" (ISO 230-1) or "detector" (the paper's) definition) or an
+  independent reference (laser interferometer / electronic level, without
+  uncertainties, :func:`read_reference_error_map`).
 * :class:`ParameterTable`: names, units, values, standard uncertainties and
   the correlation matrix of solved parameters.
 * :class:`ReprojectionResiduals`: observed minus modelled centre projections
@@ -20,12 +21,10 @@ relative path. Error bars are expanded uncertainties U = 2u (k = 2).
 matplotlib (Agg backend) is imported lazily inside the plotting functions so
 importing this module stays cheap and never needs a display.
 
-Error-map definitions (paper section 3.3, end; scenario.CampaignTruth.error_map):
-positioning = dz_R - reported travel; X / Y straightness = residuals of a
-straight-line least-squares fit of dx_R / dy_R over the reported travel;
-pitch, yaw, roll = gamma_X, gamma_Y, gamma_Z. Signs are those of {DF}; the
-paper adapts signs to the reference instrument's frame, which is left to
-whoever writes the reference file.
+Error-map definitions and sign: see error_map.py. Every figure and table says
+which definition it shows; positive positioning = the stage travelled less
+than indexed (the paper's sign, section 4.1). Angles are about the {DF} axes;
+yaw contains the rotary table's zero-index error (paper, section 4.3).
 """
 
 from __future__ import annotations
@@ -38,13 +37,12 @@ from pathlib import Path
 
 import numpy as np
 
+from .error_map import ErrorMap
+
 __all__ = [
     "COMPONENTS",
-    "ErrorMapSeries",
     "ParameterTable",
     "ReprojectionResiduals",
-    "error_map_from_motions",
-    "series_from_error_map",
     "read_reference_error_map",
     "write_report",
 ]
@@ -53,13 +51,17 @@ ARCSEC_RAD = math.pi / (180.0 * 3600.0)
 
 #: (field, title, display unit, factor SI -> display, paper figure)
 COMPONENTS = (
-    ("positioning_m", "Z positioning error", "µm", 1e6, "Fig. 7"),
+    ("positioning_m", "Positioning error", "µm", 1e6, "Fig. 7"),
     ("straightness_x_m", "X straightness error", "µm", 1e6, "Fig. 8"),
     ("straightness_y_m", "Y straightness error", "µm", 1e6, "Fig. 9"),
     ("pitch_rad", "Pitch (about X)", "arcsec", 1.0 / ARCSEC_RAD, "Fig. 10"),
     ("roll_rad", "Roll (about Z)", "arcsec", 1.0 / ARCSEC_RAD, "Fig. 11"),
     ("yaw_rad", "Yaw (about Y)", "arcsec", 1.0 / ARCSEC_RAD, "Fig. 12"),
 )
+#: components that depend on the definition (the angles do not)
+_DEFINITION_DEPENDENT = ("positioning_m", "straightness_x_m", "straightness_y_m")
+_DEFINITION_LABEL = {"travel": "along the stage travel (ISO 230-1)",
+                     "detector": "detector frame (the paper's definition)"}
 _FIELDS = tuple(c[0] for c in COMPONENTS)
 
 
@@ -72,66 +74,6 @@ def _vec(x, name, n=None, allow_nan=False) -> np.ndarray:
     if np.any(bad):
         raise ValueError(f"{name} contains {'inf' if allow_nan else 'NaN or inf'}")
     return a
-
-
-@dataclass(frozen=True)
-class ErrorMapSeries:
-    """Stage error map of one measurement method (or a reference).
-
-    Attributes
-    ----------
-    name : str
-        Legend label, e.g. ``"multi"``, ``"single"``, ``"reference"``.
-    srd_m : ndarray of shape (K,)
-        Instrument-reported source-to-rotation-axis distance [m] (x axis).
-    positioning_m, straightness_x_m, straightness_y_m : ndarray of shape (K,)
-        Z positioning and X / Y straightness errors [m]. NaN marks a value
-        that was not measured (allowed in references only).
-    pitch_rad, yaw_rad, roll_rad : ndarray of shape (K,)
-        Angular errors gamma_X, gamma_Y, gamma_Z [rad].
-    u_positioning_m, ..., u_roll_rad : ndarray of shape (K,) or None
-        Standard uncertainties (k = 1) of each component, same units;
-        None for a reference without uncertainties.
-    """
-
-    name: str
-    srd_m: np.ndarray
-    positioning_m: np.ndarray
-    straightness_x_m: np.ndarray
-    straightness_y_m: np.ndarray
-    pitch_rad: np.ndarray
-    yaw_rad: np.ndarray
-    roll_rad: np.ndarray
-    u_positioning_m: np.ndarray | None = None
-    u_straightness_x_m: np.ndarray | None = None
-    u_straightness_y_m: np.ndarray | None = None
-    u_pitch_rad: np.ndarray | None = None
-    u_yaw_rad: np.ndarray | None = None
-    u_roll_rad: np.ndarray | None = None
-
-    def __post_init__(self):
-        srd = _vec(self.srd_m, "srd_m")
-        object.__setattr__(self, "srd_m", srd)
-        k = srd.shape[0]
-        if k == 0:
-            raise ValueError("srd_m must not be empty")
-        for f in _FIELDS:
-            object.__setattr__(self, f, _vec(getattr(self, f), f, k, allow_nan=True))
-            uf = "u_" + f
-            u = getattr(self, uf)
-            if u is not None:
-                u = _vec(u, uf, k, allow_nan=True)
-                if np.any(u < 0):
-                    raise ValueError(f"{uf} must be non-negative")
-                object.__setattr__(self, uf, u)
-
-    def values(self, comp: str) -> np.ndarray:
-        """Values of one component (a name from :data:`COMPONENTS`), SI units."""
-        return getattr(self, comp)
-
-    def uncertainty(self, comp: str) -> np.ndarray | None:
-        """Standard uncertainty of one component (k = 1) or None."""
-        return getattr(self, "u_" + comp)
 
 
 @dataclass(frozen=True)
@@ -243,59 +185,7 @@ class ReprojectionResiduals:
 
 # ----------------------------------------------------------------------------- error map
 
-def error_map_from_motions(name, srd_reported_m, motions, motion_std=None) -> ErrorMapSeries:
-    """Error map in the paper's terms from solved error motions.
-
-    Same definitions as ``scenario.CampaignTruth.error_map``. Uncertainties
-    are propagated linearly assuming the K stage positions are solved
-    independently (as the paper does, one solve per position): the
-    straightness is ``(I - H) d`` with H the hat matrix of the line fit, so
-    ``u^2 = diag((I - H) diag(u_d^2) (I - H)^T)``.
-
-    Parameters
-    ----------
-    name : str
-    srd_reported_m : array_like of shape (K,)
-        Instrument-reported SRD of each position [m].
-    motions : array_like of shape (K, 6)
-        dx_R, dy_R, dz_R [m], gamma_X, gamma_Y, gamma_Z [rad] relative to k = 1.
-    motion_std : array_like of shape (K, 6), optional
-        Standard uncertainties of the motions, same units.
-
-    Returns
-    -------
-    ErrorMapSeries
-    """
-    from .error_map import error_map  # noqa: PLC0415 - the one definition of the error map
-
-    srd = _vec(srd_reported_m, "srd_reported_m")
-    k = srd.shape[0]
-    m = np.asarray(motions, dtype=float)
-    if m.shape != (k, 6) or not np.all(np.isfinite(m)):
-        raise ValueError(f"motions must be finite with shape ({k}, 6), got {m.shape}")
-    cov = None
-    if motion_std is not None:
-        s = np.asarray(motion_std, dtype=float)
-        if s.shape != (k, 6) or not np.all(np.isfinite(s)) or np.any(s < 0):
-            raise ValueError(f"motion_std must be finite, non-negative, shape ({k}, 6), got {s.shape}")
-        cov = np.einsum("kj,ij->kij", s ** 2, np.eye(6))        # independent positions, diagonal
-    return series_from_error_map(name, error_map(srd, m, cov), with_uncertainty=motion_std is not None)
-
-
-def series_from_error_map(name, em, with_uncertainty: bool = True) -> ErrorMapSeries:
-    """ErrorMapSeries of a core ``error_map.ErrorMap`` (values, and uncertainties if wanted)."""
-    kw = {}
-    if with_uncertainty:
-        kw = dict(u_positioning_m=em.u_positioning_m, u_straightness_x_m=em.u_straightness_x_m,
-                  u_straightness_y_m=em.u_straightness_y_m, u_pitch_rad=em.u_pitch_rad,
-                  u_yaw_rad=em.u_yaw_rad, u_roll_rad=em.u_roll_rad)
-    return ErrorMapSeries(
-        name=str(name), srd_m=em.srd_reported_m, positioning_m=em.positioning_m,
-        straightness_x_m=em.straightness_x_m, straightness_y_m=em.straightness_y_m,
-        pitch_rad=em.pitch_rad, yaw_rad=em.yaw_rad, roll_rad=em.roll_rad, **kw)
-
-
-def read_reference_error_map(path, name: str | None = None) -> ErrorMapSeries:
+def read_reference_error_map(path, name: str | None = None) -> ErrorMap:
     """Read independent reference measurements of the stage error map.
 
     Two formats, both in SI units (metres, radians), chosen by extension.
@@ -326,9 +216,14 @@ def read_reference_error_map(path, name: str | None = None) -> ErrorMapSeries:
     name : str, optional
         Legend label; default the YAML ``name`` or ``"reference"``.
 
+    The reference is taken to measure along the stage travel (what a laser
+    interferometer and an electronic level do): definition "travel", with the
+    project's sign (positive = travelled less than indexed; negate an ISO 230-2
+    actual - target printout).
+
     Returns
     -------
-    ErrorMapSeries
+    ErrorMap
         With all uncertainties None.
     """
     p = Path(path)
@@ -383,7 +278,7 @@ def read_reference_error_map(path, name: str | None = None) -> ErrorMapSeries:
         if v.shape != srd.shape:
             raise ValueError(f"{p}: {f} has {v.size} values, srd_m has {srd.size}")
         vals[f] = v[order]
-    return ErrorMapSeries(name=str(label or "reference"), srd_m=srd[order], **vals)
+    return ErrorMap.reference(str(label or "reference"), srd[order], definition="travel", **vals)
 
 
 # ----------------------------------------------------------------------------- plotting
@@ -400,20 +295,22 @@ def _pyplot():
     return plt
 
 
-def _reference_at(ref: ErrorMapSeries, comp: str, srd: np.ndarray) -> np.ndarray:
+def _reference_at(ref: ErrorMap, comp: str, srd: np.ndarray) -> np.ndarray:
     """Reference values linearly interpolated at ``srd``; NaN outside its range."""
     v = ref.values(comp)
     ok = np.isfinite(v)
     if ok.sum() == 0:
         return np.full(srd.shape, math.nan)
     if ok.sum() == 1:
-        return np.where(np.isclose(srd, ref.srd_m[ok][0], rtol=0, atol=1e-9), v[ok][0], math.nan)
-    out = np.interp(srd, ref.srd_m[ok], v[ok])
-    return np.where((srd >= ref.srd_m[ok][0] - 1e-12) & (srd <= ref.srd_m[ok][-1] + 1e-12), out, math.nan)
+        return np.where(np.isclose(srd, ref.srd_reported_m[ok][0], rtol=0, atol=1e-9), v[ok][0], math.nan)
+    out = np.interp(srd, ref.srd_reported_m[ok], v[ok])
+    return np.where((srd >= ref.srd_reported_m[ok][0] - 1e-12) & (srd <= ref.srd_reported_m[ok][-1] + 1e-12),
+                    out, math.nan)
 
 
-def _plot_component(plt, comp, title, unit, factor, fig_ref, series, reference, path):
-    has_ref = reference is not None and np.any(np.isfinite(reference.values(comp)))
+def _plot_component(plt, comp, title, unit, factor, fig_ref, series, reference, path, definition):
+    has_ref = (reference is not None and (comp not in _DEFINITION_DEPENDENT or reference.definition == definition)
+               and np.any(np.isfinite(reference.values(comp))))
     if has_ref:
         fig, (ax, axd) = plt.subplots(2, 1, figsize=(7.0, 6.2), sharex=True,
                                       gridspec_kw={"height_ratios": [2.2, 1.0]})
@@ -421,19 +318,19 @@ def _plot_component(plt, comp, title, unit, factor, fig_ref, series, reference, 
         fig, ax = plt.subplots(1, 1, figsize=(7.0, 4.4))
         axd = None
     for s, (colour, marker) in zip(series, _STYLES * 4):
-        x = s.srd_m * 1e3
+        x = s.srd_reported_m * 1e3
         y = s.values(comp) * factor
         u = s.uncertainty(comp)
         yerr = None if u is None else 2.0 * u * factor
         ax.errorbar(x, y, yerr=yerr, fmt=marker, color=colour, ms=5, mfc="none" if marker != "o" else colour,
                     capsize=3, elinewidth=1, label=s.name)
         if axd is not None:
-            d = (s.values(comp) - _reference_at(reference, comp, s.srd_m)) * factor
+            d = (s.values(comp) - _reference_at(reference, comp, s.srd_reported_m)) * factor
             axd.errorbar(x, d, yerr=yerr, fmt="^", color=colour, ms=5, capsize=3, elinewidth=1,
                          label=f"{s.name} − {reference.name}")
     if has_ref:
         ok = np.isfinite(reference.values(comp))
-        ax.plot(reference.srd_m[ok] * 1e3, reference.values(comp)[ok] * factor, "-", color="k", lw=1.6,
+        ax.plot(reference.srd_reported_m[ok] * 1e3, reference.values(comp)[ok] * factor, "-", color="k", lw=1.6,
                 label=reference.name)
         axd.axhline(0.0, color="k", lw=0.8)
         axd.set_ylabel(f"Δ [{unit}]")
@@ -443,7 +340,10 @@ def _plot_component(plt, comp, title, unit, factor, fig_ref, series, reference, 
     else:
         ax.set_xlabel("Stage SRD (instrument reading) [mm]")
     ax.set_ylabel(f"{title} [{unit}]")
-    ax.set_title(f"{title} ({fig_ref} style); error bars: U = 2u (k = 2)", fontsize=10)
+    what = f"{title}, {_DEFINITION_LABEL[definition]}" if comp in _DEFINITION_DEPENDENT else title
+    sign = "; + = travelled less than indexed" if comp == "positioning_m" else ""
+    sign += "; includes the rotary zero-index error" if comp == "yaw_rad" else ""
+    ax.set_title(f"{what} ({fig_ref} style{sign})\nerror bars: U = 2u (k = 2)", fontsize=9)
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=9, loc="best")
     fig.tight_layout()
@@ -549,11 +449,11 @@ def _param_rows(table: ParameterTable):
     return ["parameter", "unit", "value", "u (k=1)", "value (display)", "u (display)"], rows
 
 
-def _error_map_rows(s: ErrorMapSeries):
+def _error_map_rows(s: ErrorMap):
     head = ["SRD [mm]"] + [f"{c[1]} [{c[2]}] (± U, k=2)" for c in COMPONENTS]
     rows = []
-    for i in range(s.srd_m.size):
-        row = [_fmt(s.srd_m[i] * 1e3, ".6g")]
+    for i in range(s.srd_reported_m.size):
+        row = [_fmt(s.srd_reported_m[i] * 1e3, ".6g")]
         for comp, _, _, f, _ in COMPONENTS:
             v = s.values(comp)[i] * f
             u = s.uncertainty(comp)
@@ -589,7 +489,7 @@ class _Section:
     tables: tuple = field(default_factory=tuple)   # (head, rows)
 
 
-def write_report(out_dir, series, reference: ErrorMapSeries | None = None, params_table=None,
+def write_report(out_dir, series, reference: ErrorMap | None = None, params_table=None,
                  residuals=None, meta: dict | None = None, title: str = "CT stage error-map calibration report"):
     """Write the calibration report (PNGs + index.html + index.md).
 
@@ -597,9 +497,11 @@ def write_report(out_dir, series, reference: ErrorMapSeries | None = None, param
     ----------
     out_dir : str or Path
         Output directory (created if needed); existing files are overwritten.
-    series : sequence of ErrorMapSeries
-        Measured error maps (e.g. "multi", "single"), with uncertainties.
-    reference : ErrorMapSeries, optional
+    series : sequence of ErrorMap
+        Measured error maps (e.g. "multi", "single"), with uncertainties, in
+        one or both definitions ("travel": all six figures; "detector", the
+        paper's: its own positioning and straightness figures).
+    reference : ErrorMap, optional
         Independent reference measurements; adds the reference line and the
         delta (series minus reference, reference interpolated linearly at the
         series SRDs) sub-plot to each figure.
@@ -617,12 +519,12 @@ def write_report(out_dir, series, reference: ErrorMapSeries | None = None, param
         Path of ``index.html``; ``index.md`` is written beside it.
     """
     series = list(series)
-    if not series or not all(isinstance(s, ErrorMapSeries) for s in series):
-        raise ValueError("series must be a non-empty sequence of ErrorMapSeries")
-    if len({s.name for s in series}) != len(series):
-        raise ValueError("series names must be unique")
-    if reference is not None and not isinstance(reference, ErrorMapSeries):
-        raise ValueError("reference must be an ErrorMapSeries or None")
+    if not series or not all(isinstance(s, ErrorMap) for s in series):
+        raise ValueError("series must be a non-empty sequence of ErrorMap")
+    if len({(s.name, s.definition) for s in series}) != len(series):
+        raise ValueError("series (name, definition) pairs must be unique")
+    if reference is not None and not isinstance(reference, ErrorMap):
+        raise ValueError("reference must be an ErrorMap or None")
     tables = [] if params_table is None else (
         [params_table] if isinstance(params_table, ParameterTable) else list(params_table))
     if not all(isinstance(t, ParameterTable) for t in tables):
@@ -638,21 +540,38 @@ def write_report(out_dir, series, reference: ErrorMapSeries | None = None, param
     plt = _pyplot()
     sections = []
 
-    imgs = []
-    for comp, ctitle, unit, factor, fig_ref in COMPONENTS:
-        name = f"error_{comp.rsplit('_', 1)[0]}.png"
-        has_delta = _plot_component(plt, comp, ctitle, unit, factor, fig_ref, series, reference, out / name)
-        imgs.append((name, f"{ctitle} vs stage SRD" + (" with delta to reference" if has_delta else "")))
-    ref_txt = (f" Reference: {reference.name} (solid line); the lower panels show series minus reference "
-               "(reference interpolated linearly at the series' SRD)." if reference is not None else "")
-    sections.append(_Section(
-        "Stage error map",
-        "Error motions of the stage vs the instrument-reported SRD, in the detector frame {DF}: "
-        "positioning = dz_R − reported travel; X/Y straightness = residuals of a straight-line fit of "
-        "dx_R/dy_R over the travel; pitch/yaw/roll = γ_X/γ_Y/γ_Z. Error bars are expanded uncertainties "
-        "U = 2u (coverage factor k = 2)." + ref_txt,
-        tuple(imgs),
-        tuple(_error_map_rows(s) + (f"Error map: {s.name}",) for s in series)))
+    ref_txt = (f" Reference: {reference.name} (solid line, measured along the stage travel); the lower panels "
+               "show series minus reference (reference interpolated linearly at the series' SRD)."
+               if reference is not None else "")
+    for definition in ("travel", "detector"):
+        group = [s for s in series if s.definition == definition]
+        if not group:
+            continue
+        # beside a "travel" map, the paper's definition adds its positioning figure (the Fig. 7
+        # comparison): its straightness differs only by the travel-normal angle times the
+        # positioning's departure from a line, and its angles are the same
+        comps = COMPONENTS if definition == "travel" or not any(s.definition == "travel" for s in series) \
+            else COMPONENTS[:1]
+        imgs = []
+        for comp, ctitle, unit, factor, fig_ref in comps:
+            suffix = "" if definition == "travel" else "_detector_frame"
+            name = f"error_{comp.rsplit('_', 1)[0]}{suffix}.png"
+            has_delta = _plot_component(plt, comp, ctitle, unit, factor, fig_ref, group, reference, out / name,
+                                        definition)
+            imgs.append((name, f"{ctitle} vs stage SRD" + (" with delta to reference" if has_delta else "")))
+        first = group[0]
+        angle = first.angle_travel_normal_rad
+        extra = ""
+        if np.isfinite(angle):
+            extra = (f" Angle between the fitted stage travel and the detector normal: "
+                     f"{math.degrees(angle):.4f}° (u = {_fmt(first.u_angle_travel_normal_rad / ARCSEC_RAD, '.3g')}"
+                     " arcsec).")
+        sections.append(_Section(
+            f"Stage error map: {_DEFINITION_LABEL[definition]}",
+            " ".join(first.notes) + "." + extra + " Error bars are expanded uncertainties U = 2u "
+            "(coverage factor k = 2)." + (ref_txt if definition == "travel" else ""),
+            tuple(imgs),
+            tuple(_error_map_rows(s) + (f"Error map: {s.name} ({_DEFINITION_LABEL[definition]})",) for s in group)))
 
     for t_i, t in enumerate(tables):
         img = ()

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .geometry import detector_rotation
+from .geometry import detector_rotation, rot_x, rot_y
 
 ARCSEC = np.pi / (180.0 * 3600.0)   # [rad] per arcsecond
 DEG = np.pi / 180.0                 # [rad] per degree
@@ -23,6 +23,17 @@ DEG = np.pi / 180.0                 # [rad] per degree
 @dataclass(frozen=True)
 class CampaignTruth:
     """Ground truth of one simulated calibration campaign.
+
+    The stage is modelled as a machine, not through the error map's formulas:
+    it travels along a true unit direction ``travel_direction_df`` (in {DF});
+    at reading change s it sits at ``(s - p(s)) t + e_x(s) x' + e_y(s) y'`` with
+    p the positioning error (positive: travelled LESS than indexed, the paper's
+    sign, section 4.1), e_x, e_y the straightness deviations perpendicular to t
+    (x' the {DF} X axis projected on the plane perpendicular to t, y' = t x x';
+    their least-squares line over the positions is zero), and it turns by the
+    angular errors. The true error maps below follow from that construction
+    by hand (no call into error_map.py), so a mistake there cannot hide in the
+    test truth.
 
     Attributes
     ----------
@@ -36,12 +47,18 @@ class CampaignTruth:
         dx_R, dy_R, dz_R [m], gamma_X, gamma_Y, gamma_Z [rad]. Row 0 is zero.
     sdd_reported_m : float
         Source-to-detector distance the instrument software states [m].
+    travel_direction_df : ndarray of shape (3,)
+        True unit travel direction of the stage in {DF}.
+    stage_errors : ndarray of shape (K, 6)
+        positioning p, straightness e_x, e_y [m], pitch, yaw, roll [rad] as built.
     """
 
     static_w: np.ndarray
     srd_reported_m: np.ndarray
     motions: np.ndarray
     sdd_reported_m: float = 1.04821
+    travel_direction_df: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+    stage_errors: np.ndarray | None = None
     notes: dict = field(default_factory=dict)
 
     @property
@@ -49,17 +66,34 @@ class CampaignTruth:
         """Reported travel from k = 1 [m], shape (K,)."""
         return self.srd_reported_m - self.srd_reported_m[0]
 
-    def error_map(self) -> dict:
-        """True error map in the paper's terms (section 3.3, end).
+    @property
+    def angle_travel_normal_rad(self) -> float:
+        """True angle between the stage travel and the detector normal [rad]."""
+        return float(np.arccos(abs(self.travel_direction_df[2])))
 
-        Returns a dict of arrays of shape (K,): ``positioning_m`` (dz minus
-        reported travel), ``straightness_x_m`` and ``straightness_y_m``
-        (residuals of a straight-line fit of dx and dy over the travel),
-        ``pitch_rad``, ``yaw_rad``, ``roll_rad`` (gamma_X, gamma_Y, gamma_Z).
+    def error_map(self, definition: str = "travel") -> dict:
+        """True error map, dict of arrays of shape (K,) under error_map.COMPONENT_FIELDS' names.
+
+        ``"travel"`` (ISO 230-1 geometry): the stage errors as built. ``"detector"``
+        (the paper's section 3.3): reading change minus dz_R, and the residuals of
+        straight-line fits (numpy.polyfit) of dx_R, dy_R against the reading change.
         """
-        from .error_map import error_map  # noqa: PLC0415 - the one definition of the error map
+        if self.stage_errors is None:
+            raise ValueError("this truth has no stage_errors (built by hand without a stage model)")
+        e = self.stage_errors
+        keys = ("positioning_m", "straightness_x_m", "straightness_y_m", "pitch_rad", "yaw_rad", "roll_rad")
+        if definition == "travel":
+            return {k: e[:, j].copy() for j, k in enumerate(keys)}
+        if definition != "detector":
+            raise ValueError(f"definition must be 'travel' or 'detector', got {definition!r}")
+        s = self.travel_m
+        d = self.motions[:, :3]
 
-        return {k: v.copy() for k, v in error_map(self.srd_reported_m, self.motions).as_truth_dict().items()}
+        def resid(y):
+            return y - np.polyval(np.polyfit(s, y, 1), s)
+
+        vals = (s - d[:, 2], resid(d[:, 0]), resid(d[:, 1]), e[:, 3], e[:, 4], e[:, 5])
+        return {k: np.asarray(v, dtype=float).copy() for k, v in zip(keys, vals)}
 
 
 def default_static_truth(srd_reported_m: float = 0.364, sdd_reported_m: float = 1.04821) -> np.ndarray:
@@ -83,8 +117,13 @@ def default_static_truth(srd_reported_m: float = 0.364, sdd_reported_m: float = 
     ])
 
 
-def paper_like_motions(travel_m: np.ndarray) -> np.ndarray:
-    """Stage error motions shaped like the seed paper's Figs 7-12.
+def _detrended(s, y):
+    """y minus its least-squares line over the sample points s (a pure straightness shape)."""
+    return y - np.polyval(np.polyfit(s, y, 1), s)
+
+
+def paper_like_stage_errors(travel_m: np.ndarray) -> np.ndarray:
+    """Stage errors shaped like the seed paper's Figs 7-12, in the ISO 230-1 geometry.
 
     Parameters
     ----------
@@ -94,46 +133,73 @@ def paper_like_motions(travel_m: np.ndarray) -> np.ndarray:
     Returns
     -------
     ndarray of shape (K, 6)
-        dx, dy, dz [m] (dz includes the travel itself) and gamma_X, gamma_Y,
-        gamma_Z [rad], all zero at k = 1.
+        positioning [m] (positive: the stage travels less than indexed, growing to
+        +0.5 mm over the travel as in the paper's Fig. 7), X / Y straightness [m]
+        (parabolas of 18 and -12 um, least-squares line removed over the given
+        positions), pitch, yaw, roll [rad]; all zero at k = 1 except the
+        straightness, which is a deviation from the fitted line.
     """
     t = np.asarray(travel_m, dtype=float)
     span = max(float(t[-1]), 1e-9)
     s = t / span                                         # 0 .. 1 over the travel
-    positioning = 0.50e-3 * s ** 1.4                     # grows to 0.5 mm
-    dx = 25e-6 * s + 18e-6 * 4 * s * (1 - s)             # slope + 18 um parabola
-    dy = -8e-6 * s - 12e-6 * 4 * s * (1 - s)             # slope - 12 um parabola
+    positioning = 0.50e-3 * s ** 1.4                     # grows to +0.5 mm (travels less)
+    if t.size >= 2 and np.ptp(t) > 0:
+        ex = _detrended(t, 18e-6 * 4 * s * (1 - s))      # 18 um parabola
+        ey = _detrended(t, -12e-6 * 4 * s * (1 - s))     # -12 um parabola
+    else:
+        ex = ey = np.zeros_like(t)
     pitch = 15 * ARCSEC * np.sin(np.pi * s)              # up to 15 arcsec
     yaw = 40 * ARCSEC * s - 10 * ARCSEC * np.sin(2 * np.pi * s)
     roll = -12 * ARCSEC * s ** 2
-    out = np.stack([dx, dy, t + positioning, pitch, yaw, roll], axis=1)
-    out[0] = 0.0
+    return np.stack([positioning, ex, ey, pitch, yaw, roll], axis=1)
+
+
+def stage_motions(travel_m, travel_direction_df, stage_errors) -> np.ndarray:
+    """Error motions (K, 6) in {DF} of a stage moving along ``travel_direction_df`` with these errors.
+
+    Displacement ``(s - p) t + e_x x' + e_y y'`` relative to k = 1 (x' = {DF} X projected
+    perpendicular to t, y' = t x x'), angles as given.
+    """
+    s = np.asarray(travel_m, dtype=float)
+    t = np.asarray(travel_direction_df, dtype=float)
+    t = t / np.linalg.norm(t)
+    e = np.asarray(stage_errors, dtype=float)
+    xp = np.array([1.0, 0.0, 0.0]) - t[0] * t
+    xp /= np.linalg.norm(xp)
+    yp = np.cross(t, xp)
+    d = (s - e[:, 0])[:, None] * t + e[:, 1:2] * xp + e[:, 2:3] * yp
+    d -= d[0]
+    out = np.concatenate([d, e[:, 3:]], axis=1)
+    out[0, 3:] = 0.0
     return out
 
 
 def default_campaign(n_positions: int = 19, step_m: float = 0.020,
-                     srd_first_m: float = 0.364, sdd_reported_m: float = 1.04821) -> CampaignTruth:
+                     srd_first_m: float = 0.364, sdd_reported_m: float = 1.04821,
+                     guide_misalignment_rad=(0.05 * DEG, -0.03 * DEG)) -> CampaignTruth:
     """The paper's campaign: stage stepped by ``step_m`` from ``srd_first_m``.
 
-    The default is 19 positions, 364 mm to 724 mm in 20 mm steps.
+    The default is 19 positions, 364 mm to 724 mm in 20 mm steps. The stage
+    runs along the source -> rotation-axis line ({SRF} Z) turned by
+    ``guide_misalignment_rad`` (about {SRF} X, then Y): the tilted detector sees
+    that travel about 0.7 degrees from its normal, so the detector-frame
+    positioning (the paper's) and the positioning along the travel (ISO
+    230-1) differ by ~27 um over 360 mm.
     """
     if n_positions < 1:
         raise ValueError(f"n_positions must be >= 1, got {n_positions}")
     srd = srd_first_m + step_m * np.arange(n_positions)
     w = default_static_truth(srd_first_m, sdd_reported_m)
-    motions = paper_like_motions(srd - srd[0])
-    # The stage runs along the source -> rotation-axis line ({SRF} Z), which
-    # the tilted detector sees slightly oblique: in {DF} the travel has a
-    # small X and Y component (millimetres over the travel). The straightness
-    # fit removes this linear part; the scenario keeps it for realism.
-    z_srf_in_df = detector_rotation(w[4], w[5], w[6]).T @ np.array([0.0, 0.0, 1.0])
     t = srd - srd[0]
-    motions[:, 0] += t * z_srf_in_df[0]
-    motions[:, 1] += t * z_srf_in_df[1]
-    motions[:, 2] += t * (z_srf_in_df[2] - 1.0)
+    gx, gy = guide_misalignment_rad
+    travel_srf = rot_y(gy) @ rot_x(gx) @ np.array([0.0, 0.0, 1.0])
+    travel_df = detector_rotation(w[4], w[5], w[6]).T @ travel_srf
+    errors = paper_like_stage_errors(t)
     return CampaignTruth(
         static_w=w,
         srd_reported_m=srd,
-        motions=motions,
+        motions=stage_motions(t, travel_df, errors),
         sdd_reported_m=sdd_reported_m,
+        travel_direction_df=travel_df / np.linalg.norm(travel_df),
+        stage_errors=errors,
     )

@@ -11,18 +11,6 @@ from ct_calib_nodes.core import report as rep
 from ct_calib_nodes.core.export import export_geometry_files
 
 
-def series_from_error_map_msg(msg, name=None):
-    """metro_msgs/ErrorMap (or a decoded recording of one) -> report.ErrorMapSeries."""
-    a = lambda f: np.asarray(getattr(msg, f), dtype=float)  # noqa: E731
-    return rep.ErrorMapSeries(
-        name=name or str(msg.mode), srd_m=a("srd_reported_m"), positioning_m=a("positioning_m"),
-        straightness_x_m=a("straightness_x_m"), straightness_y_m=a("straightness_y_m"),
-        pitch_rad=a("pitch_rad"), yaw_rad=a("yaw_rad"), roll_rad=a("roll_rad"),
-        u_positioning_m=a("u_positioning_m"), u_straightness_x_m=a("u_straightness_x_m"),
-        u_straightness_y_m=a("u_straightness_y_m"), u_pitch_rad=a("u_pitch_rad"),
-        u_yaw_rad=a("u_yaw_rad"), u_roll_rad=a("u_roll_rad"))
-
-
 def write_report_and_export(out_dir, *, names, units, values, covariance, geometry, series, motions,
                             srd_reported_m, detector, reference_path=None, residuals=None, meta=None,
                             n_export_views: int = 360) -> pathlib.Path:
@@ -32,7 +20,7 @@ def write_report_and_export(out_dir, *, names, units, values, covariance, geomet
     ----------
     names, units, values, covariance : static parameter table (13 names, units, values, (13,13))
     geometry : DetectorFrameGeometry of the static solution
-    series : list of report.ErrorMapSeries ("multi", "single")
+    series : list of error_map.ErrorMap ("multi", "single"; both definitions)
     motions : ndarray of shape (K, 6), multi-projection error motions (row 0 zeros)
     srd_reported_m : ndarray of shape (K,)
     reference_path : optional reference error-map file (CSV/YAML) for the delta plots

@@ -31,17 +31,31 @@ class CtInstrument:
         Pixel grid (cols, rows, pixel pitch [m]).
     flat_field_counts : float
         Mean open-beam counts of mono16 frames.
+    index_repeatability_rad : float or None
+        Optional ``rotary_index_repeatability`` [rad]: standard uncertainty of the
+        rotary table's zero index on returning to it, included in u(yaw).
+    temperature_K : float or None
+        Optional ``temperature`` [K]: the reference object's temperature during
+        the scan, for its thermal expansion (with the object's expansion
+        coefficient and calibration temperature).
     """
 
     sdd_reported_m: float
     detector: DetectorSpec
     flat_field_counts: float
+    index_repeatability_rad: float | None = None
+    temperature_K: float | None = None
 
     def to_yaml_dict(self) -> dict:
-        return {"units": "SI", "source_to_detector": float(self.sdd_reported_m),
-                "detector": {"cols": int(self.detector.cols), "rows": int(self.detector.rows),
-                             "pixel_pitch": float(self.detector.pixel_pitch_m),
-                             "flat_field_counts": float(self.flat_field_counts)}}
+        d = {"units": "SI", "source_to_detector": float(self.sdd_reported_m),
+             "detector": {"cols": int(self.detector.cols), "rows": int(self.detector.rows),
+                          "pixel_pitch": float(self.detector.pixel_pitch_m),
+                          "flat_field_counts": float(self.flat_field_counts)}}
+        if self.index_repeatability_rad is not None:
+            d["rotary_index_repeatability"] = float(self.index_repeatability_rad)
+        if self.temperature_K is not None:
+            d["temperature"] = float(self.temperature_K)
+        return d
 
 
 def _load(path) -> dict:
@@ -72,6 +86,16 @@ def _positive(path, data, key, where=""):
     return v
 
 
+def _non_negative(path, data, key, where=""):
+    try:
+        v = float(data[key])
+    except (TypeError, ValueError):
+        raise CtFileError(f"{path}: {where}{key} must be a number, got {data[key]!r}") from None
+    if not np.isfinite(v) or v < 0:
+        raise CtFileError(f"{path}: {where}{key} must be non-negative and finite, got {v}")
+    return v
+
+
 def load_instrument(path) -> CtInstrument:
     """Read ct_instrument.yaml."""
     data = _load(path)
@@ -88,7 +112,13 @@ def load_instrument(path) -> CtInstrument:
     flat = _positive(path, det, "flat_field_counts", "detector.") if "flat_field_counts" in det else 0.0
     if sdd > 20 or sdd < 0.01:
         raise CtFileError(f"{path}: source_to_detector {sdd} m is implausible (metres expected)")
-    return CtInstrument(sdd, DetectorSpec(int(cols), int(rows), pitch), flat)
+    rep = None
+    if data.get("rotary_index_repeatability") is not None:
+        rep = _non_negative(path, data, "rotary_index_repeatability")
+        if rep > 0.01:
+            raise CtFileError(f"{path}: rotary_index_repeatability {rep} rad is implausible (radians expected)")
+    temp = _positive(path, data, "temperature") if data.get("temperature") is not None else None
+    return CtInstrument(sdd, DetectorSpec(int(cols), int(rows), pitch), flat, rep, temp)
 
 
 def load_reference_object(path) -> ReferenceObject:

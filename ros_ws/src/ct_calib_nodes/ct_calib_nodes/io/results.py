@@ -7,6 +7,7 @@ import pathlib
 
 import numpy as np
 
+from ct_calib_nodes.core.error_map import COMPONENT_FIELDS as ERROR_MAP_FIELDS
 from ct_calib_nodes.core.geometry import STATIC_PARAM_NAMES, STATIC_PARAM_UNITS, static_to_detector_frame
 from ct_calib_nodes.io.convert import stamp_ns
 
@@ -87,18 +88,50 @@ def static_from_geometry_msg(msg, centres_of_m):
 
 
 def error_map_msg(em, mode: str, motions_msgs, stamp):
+    """core.error_map.ErrorMap -> metro_msgs/ErrorMap (all fields, covariance row-major)."""
+    from geometry_msgs.msg import Vector3  # noqa: PLC0415
     from metro_msgs.msg import ErrorMap  # noqa: PLC0415
 
     m = ErrorMap()
     m.header.stamp = stamp
     m.header.frame_id = "ct_detector"
     m.mode = mode
-    for f in ("srd_reported_m", "positioning_m", "u_positioning_m", "straightness_x_m", "u_straightness_x_m",
-              "straightness_y_m", "u_straightness_y_m", "pitch_rad", "u_pitch_rad", "yaw_rad", "u_yaw_rad",
-              "roll_rad", "u_roll_rad"):
-        setattr(m, f, [float(v) for v in np.asarray(getattr(em, f), dtype=float)])
+    m.definition = em.definition
+    m.notes = [str(n) for n in em.notes]
+    m.srd_reported_m = [float(v) for v in em.srd_reported_m]
+    nan = np.full(em.k, np.nan)
+    for f in ERROR_MAP_FIELDS:
+        setattr(m, f, [float(v) for v in em.values(f)])
+        u = em.uncertainty(f)
+        setattr(m, "u_" + f, [float(v) for v in (nan if u is None else u)])
+    t = em.travel_direction_df
+    m.travel_direction_df = Vector3(x=float(t[0]), y=float(t[1]), z=float(t[2]))
+    m.angle_travel_normal_rad = float(em.angle_travel_normal_rad)
+    m.u_angle_travel_normal_rad = float(em.u_angle_travel_normal_rad)
+    m.index_repeatability_rad = float(em.index_repeatability_rad or 0.0)
+    m.covariance = [] if em.covariance is None else [float(v) for v in np.asarray(em.covariance).ravel()]
     m.motions = list(motions_msgs)
     return m
+
+
+def error_map_from_msg(msg, name=None):
+    """metro_msgs/ErrorMap (live or decoded from a recording) -> core.error_map.ErrorMap."""
+    from ct_calib_nodes.core.error_map import ErrorMap  # noqa: PLC0415
+
+    a = lambda f: np.asarray(getattr(msg, f), dtype=float)  # noqa: E731
+    k = len(msg.srd_reported_m)
+    cov = a("covariance")
+    t = msg.travel_direction_df
+    rep = float(msg.index_repeatability_rad)
+    return ErrorMap(name=name or str(msg.mode), definition=str(msg.definition) or "travel",
+                    srd_reported_m=a("srd_reported_m"),
+                    **{f: a(f) for f in ERROR_MAP_FIELDS}, **{"u_" + f: a("u_" + f) for f in ERROR_MAP_FIELDS},
+                    travel_direction_df=np.array([t.x, t.y, t.z]),
+                    angle_travel_normal_rad=float(msg.angle_travel_normal_rad),
+                    u_angle_travel_normal_rad=float(msg.u_angle_travel_normal_rad),
+                    index_repeatability_rad=rep if rep > 0 else None,
+                    covariance=cov.reshape(6 * k, 6 * k) if cov.size == 36 * k * k else None,
+                    notes=tuple(str(n) for n in msg.notes))
 
 
 def _plain(v):
@@ -132,5 +165,5 @@ def static_param_table_rows(res):
     return names, units, np.asarray(res.x), np.asarray(res.std)
 
 
-__all__ = ["estimate_msg", "geometry_msg", "static_from_geometry_msg", "error_map_msg", "write_json_atomic",
+__all__ = ["estimate_msg", "geometry_msg", "static_from_geometry_msg", "error_map_msg", "error_map_from_msg", "write_json_atomic",
            "status_code", "stamp_ns"]

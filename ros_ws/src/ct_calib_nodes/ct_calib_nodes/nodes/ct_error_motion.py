@@ -5,8 +5,11 @@ geometry ``/ct/geometry``. When a position k >= 2 is complete (the reported SRD
 moves on, or no observation for ``idle_solve_s``) it solves the six error
 motions from all projections ("multi") and from the first projection only
 ("single"), and republishes the growing error map on ``/ct/error_map`` and
-``/ct/error_map/single`` (metro_msgs/ErrorMap, latched). Uncertainties include
-the propagated uncertainty of the static geometry. Service ``~/solve`` re-runs
+``/ct/error_map/single`` (metro_msgs/ErrorMap, latched), in the "travel"
+definition (ISO 230-1 geometry; sign: + = travelled less than indexed; see
+core/error_map.py). Uncertainties are the joint covariance over positions,
+including the static geometry's (shared by all positions) and, when
+ct_instrument.yaml gives it, the rotary indexing repeatability in u(yaw). Service ``~/solve`` re-runs
 the solves. With ``results_dir`` set, the results (JSON with units) are written
 there after every update (atomically).
 """
@@ -113,7 +116,8 @@ class CtErrorMotion(Node):
         for mode in MODES:
             if not self.results[mode]:
                 continue
-            em, ks = campaign_error_map(self.acc, self.results[mode], self.static)
+            em, ks = campaign_error_map(self.acc, self.results[mode], self.static, definition="travel", name=mode,
+                                        index_repeatability_rad=self.instrument.index_repeatability_rad)
             motions = [estimate_msg(self.results[mode][k], f"ct_error_motion/{mode}", stamp) for k in ks[1:]]
             self.pubs[mode].publish(error_map_msg(em, mode, motions, stamp))
         self.get_logger().info(f"error map updated: {len(self.results['multi'])} position(s) solved")
