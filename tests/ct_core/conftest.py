@@ -1,9 +1,11 @@
 """Shared truth and simulated data for the CT core solver tests.
 
 Truth: scenario.default_campaign() (misaligned instrument, paper-like error
-motions). Reference object: simulate_obs.multi_helix_centres() (49 spheres,
-radius 37.5 mm, heights +-48 mm). Detector: 1024 x 1024 px, 0.4 mm pitch
-(INTERFACES.md). Pixel noise: 0.05 px, the detection target.
+motions). Reference object: the shipped helix49 (phantom.helix49, the package's
+reference_object.yaml). Detector: 1024 x 1024 px, 0.4 mm pitch (INTERFACES.md).
+Pixel noise: 0.05 px, the detection target. Observations are silhouette-ellipse
+centres of a contour of CONTOUR_RADIUS_M about each sphere centre, with their
+semi-minor axes, as the detector reports them.
 """
 
 import numpy as np
@@ -11,10 +13,11 @@ import pytest
 
 from ct_calib_nodes.core.geometry import DetectorSpec
 from ct_calib_nodes.core.scenario import default_campaign
-from ct_calib_nodes.core.simulate_obs import multi_helix_centres, simulate_observations
+from ct_calib_nodes.core.phantom import helix49
+from ct_calib_nodes.core.simulate_obs import simulate_observations
 from ct_calib_nodes.core.static_solver import solve_static
 
-from ct_core_settings import N_VIEWS, SIGMA_PX  # noqa: F401 (re-exported for fixtures)
+from ct_core_settings import CONTOUR_RADIUS_M, N_VIEWS, SIGMA_PX  # noqa: F401 (re-exported for fixtures)
 
 
 @pytest.fixture(scope="session")
@@ -24,7 +27,7 @@ def detector():
 
 @pytest.fixture(scope="session")
 def centres():
-    return multi_helix_centres()
+    return helix49().centres_of_m
 
 
 @pytest.fixture(scope="session")
@@ -40,7 +43,7 @@ def alphas():
 @pytest.fixture(scope="session")
 def sim_k1(campaign, centres, detector, alphas):
     return simulate_observations(campaign.static_w, centres, detector, alphas,
-                                 np.random.default_rng(20240611), SIGMA_PX)
+                                 np.random.default_rng(20240611), SIGMA_PX, contour_radius_m=CONTOUR_RADIUS_M)
 
 
 @pytest.fixture(scope="session")

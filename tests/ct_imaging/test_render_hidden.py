@@ -21,7 +21,7 @@ def test_switches_are_off_by_default():
     assert s.encoder_eccentricity_rad == 0.0
     assert s.detector_distortion_k1_per_m2 == 0.0
     assert s.focal_spot_drift_m_per_s == (0.0, 0.0, 0.0)
-    assert s.ellipse_centre_bias is False
+    assert s.ellipse_centre_bias is True          # physics, on by default (the solvers model it)
 
 
 @pytest.mark.parametrize("alpha", [0.0, 1.0, 2.5])

@@ -56,7 +56,8 @@ class OfflineResult:
 
     static: object = None                       # StaticResult
     motions: dict = field(default_factory=dict)  # mode -> {k: MotionResult}
-    maps: dict = field(default_factory=dict)     # mode -> (ErrorMap, ks)
+    maps: dict = field(default_factory=dict)     # mode -> {definition: ErrorMap} ("travel", "detector")
+    map_positions: dict = field(default_factory=dict)  # mode -> position indices ks of the maps
     frames: list = field(default_factory=list)   # FrameResult per processed frame, in order
     acc: CampaignAccumulator | None = None
     read_report: ReadReport | None = None
@@ -78,10 +79,10 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
     def take(results):
         for fr in results:
             out.frames.append(fr)
-            ids, uv, sig = fr.accepted()
+            ids, uv, sig, minor = fr.accepted()
             idx = np.searchsorted(ref.ids, ids) if len(ids) else np.zeros(0, np.int64)
             out.acc.add_frame(fr.stamp_ns, fr.alpha_rad, fr.srd_reported_m, idx, uv, sig,
-                              int(np.count_nonzero(fr.flag)))
+                              int(np.count_nonzero(fr.flag)), minor)
 
     def pair(t):
         if t not in images or t not in stages:
@@ -143,7 +144,12 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
             except ValueError as exc:
                 out.problems.append(f"position {k + 1} ({mode}): {exc}")
         if out.motions[mode]:
-            out.maps[mode] = campaign_error_map(out.acc, out.motions[mode], published)
+            out.maps[mode] = {}
+            for definition in ("travel", "detector"):
+                em, ks = campaign_error_map(out.acc, out.motions[mode], published, definition=definition, name=mode,
+                                            index_repeatability_rad=instrument.index_repeatability_rad)
+                out.maps[mode][definition] = em
+                out.map_positions[mode] = ks
     say(f"error motions solved at {len(out.motions.get('multi', {}))} position(s)")
     return out
 
@@ -161,8 +167,9 @@ def _result_dict(res, instrument, ref, recording, files) -> dict:
     for mode, by_k in res.motions.items():
         d["error_motions"][mode] = {str(k): dict(r.to_dict(), units=list(MOTION_PARAM_UNITS))
                                     for k, r in sorted(by_k.items())}
-    for mode, (em, ks) in res.maps.items():
-        d["error_maps"][mode] = dict(em.to_dict(), positions=ks)
+    for mode, by_def in res.maps.items():
+        d["error_maps"][mode] = {definition: dict(em.to_dict(), positions=res.map_positions[mode])
+                                 for definition, em in by_def.items()}
     return d
 
 
@@ -189,7 +196,7 @@ def _write_result_mcap(path, res, instrument):
         for mode, topic in (("multi", "/ct/error_map"), ("single", "/ct/error_map/single")):
             if mode not in res.maps:
                 continue
-            em, ks = res.maps[mode]
+            em, ks = res.maps[mode]["travel"], res.map_positions[mode]
             motions = [estimate_msg(res.motions[mode][k], f"ct_error_motion/{mode}", stamp(last)) for k in ks[1:]]
             w.add_topic(topic, "metro_msgs/msg/ErrorMap", QOS_RELIABLE_LATCHED)
             w.write(topic, error_map_msg(em, mode, motions, stamp(last)), last)
@@ -197,7 +204,6 @@ def _write_result_mcap(path, res, instrument):
 
 def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files, reference_path=None):
     """Write everything into a temporary directory, then move each file into out_dir."""
-    from ct_calib_nodes.core import report as rep  # noqa: PLC0415
     from ct_calib_nodes.core.ct_pipeline import campaign_residuals  # noqa: PLC0415
     from ct_calib_nodes.io.campaign_outputs import write_report_and_export  # noqa: PLC0415
     from ct_calib_nodes.io.results import write_json_atomic  # noqa: PLC0415
@@ -209,8 +215,8 @@ def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files
         write_json_atomic(tmp / "results.json", _result_dict(res, instrument, ref, recording, files))
         _write_result_mcap(tmp / "results.mcap", res, instrument)
         if "multi" in res.maps:
-            series = [rep.series_from_error_map(mode, res.maps[mode][0]) for mode in MODES if mode in res.maps]
-            em, ks = res.maps["multi"]
+            series = [res.maps[mode]["travel"] for mode in MODES if mode in res.maps] + [res.maps["multi"]["detector"]]
+            em, ks = res.maps["multi"]["travel"], res.map_positions["multi"]
             motions = np.zeros((len(ks), 6))
             for i, k in enumerate(ks[1:], start=1):
                 motions[i] = res.motions["multi"][k].x

@@ -16,6 +16,22 @@ The values reproduce geometry.forward_srf / forward_df exactly (tested); the
 Jacobians are chain-rule derivatives of the same expressions (tested
 against finite differences).
 
+Observable: the detector reports the centre of the ellipse fitted to each
+sphere's shadow, not the projection of the sphere's centre (the paper's model).
+Every iso-transmission contour of a sphere is the section of a circular cone
+of rays about the source-to-centre line, and for such a section the ellipse
+centre E, the centre projection C and the principal point P (foot of the
+perpendicular from the source, at distance D) satisfy exactly
+
+    E - P = (1 + (b / D)^2) (C - P)
+
+with b the ellipse's semi-minor axis (Deng et al. 2015; derivation in
+doc/ct_core.md). When the observations carry the measured semi-minor axes
+(``CentreObservations.minor_axis_px``) both kernels model E, with P and D
+from the current geometry; otherwise they model C. The shift is about
+1.7e-5 of the distance from P at SRD 364 mm (0.005 px at 300 px): small, but
+the same sign everywhere, which biases z_R and the magnification scale.
+
 Pipeline (both models)::
 
     alpha  --"angle" terms-->  alpha_true  --rotation about the axis-->  point
@@ -196,6 +212,9 @@ class StaticKernel:
         self.c0, self.r0 = detector.centre_px
         self.pitch = detector.pixel_pitch_m
         self.observed = np.concatenate([obs.uv_px[:, 0], obs.uv_px[:, 1]])  # (2Q,) blocked
+        # squared semi-minor axis [m^2] of each observed shadow ellipse: the model is then the
+        # ellipse centre (module docstring); None: the centre projection
+        self.b2 = None if obs.minor_axis_px is None else (obs.minor_axis_px * self.pitch) ** 2
 
     # ------------------------------------------------------------------ layout helpers
     def interleave(self, r_blocked):
@@ -256,25 +275,29 @@ class StaticKernel:
         inv = 1.0 / g[2]
         rx = g[0] * inv
         ry = g[1] * inv
+        # ellipse centre: E - P = (1 + e)(C - P), e = b^2 / D^2 with D = h_z the source-to-plane
+        # distance and C - P = h_z r in {DF} metres
+        e = None if self.b2 is None else self.b2 / (h[2] * h[2])
+        hz = h[2] if e is None else h[2] * (1.0 + e)
         r = np.empty(2 * q)
         xy = None
         if self.has_image:
             xy = np.empty((q, 2))
-            xy[:, 0] = h[2] * rx - h[0]                                    # App. A, in {DF} [m]
-            xy[:, 1] = h[2] * ry - h[1]
+            xy[:, 0] = hz * rx - h[0]                                      # App. A, in {DF} [m]
+            xy[:, 1] = hz * ry - h[1]
             xy_t = _image_stage(xy, None, tpar, terms, self.obs, 13, False)
             np.multiply(xy_t[:, 0], 1.0 / self.pitch, out=r[:q])
             np.multiply(xy_t[:, 1], -1.0 / self.pitch, out=r[q:])
             r[:q] += self.c0
             r[q:] += self.r0
         else:
-            np.multiply(rx, h[2] / self.pitch, out=r[:q])
+            np.multiply(rx, hz / self.pitch, out=r[:q])
             r[:q] += self.c0 - h[0] / self.pitch
-            np.multiply(ry, -h[2] / self.pitch, out=r[q:])
+            np.multiply(ry, -hz / self.pitch, out=r[q:])
             r[q:] += self.r0 + h[1] / self.pitch
         r -= self.observed
         return dict(x=x, w=w, tpar=tpar, ca=ca, sa=sa, a_derivs=a_derivs, b=b, p=p, rdet=rdet, h=h,
-                    inv=inv, rx=rx, ry=ry, xy=xy, r=r)
+                    inv=inv, rx=rx, ry=ry, xy=xy, r=r, e=e)
 
     def _jacobian(self, st):
         q, n = self.q, self.n
@@ -296,6 +319,13 @@ class StaticKernel:
         basis[3] = rx
         basis[4] = ry
         basis[5] = 1.0
+        e = st["e"]
+        if e is not None:
+            # ellipse centre: J_E = (1 + e) J_C + e (dh_xy - 2 r dh_z) (doc/ct_core.md); the
+            # (1 + e) factor goes into the per-observation polynomials and gains below, the
+            # extra term is added to the rows of D and of the detector angles
+            basis[:5] *= 1.0 + e
+            basis[5] = 1.0 + e
         th = w[4]
         omegas = (np.array([1.0, 0.0, 0.0]), np.array([0.0, np.cos(th), -np.sin(th)]), rdet[2].copy())
         cu = np.zeros((6, 6))
@@ -311,9 +341,17 @@ class StaticKernel:
             cv[3 + j] = h[2] * np.array([-om[1], 0.0, om[0], -om[2], dh[2] / h[2], om[0] - dh[1] / h[2]])
         np.matmul(cu * su, basis, out=ju[1:7])
         np.matmul(cv * sv, basis, out=jv[1:7])
+        if e is not None:
+            for j in range(6):
+                dh = rd[:, j] if j < 3 else _cross3(h, omegas[j - 3])
+                ju[1 + j] += (su * e) * (dh[0] - 2.0 * dh[2] * rx)
+                jv[1 + j] += (sv * e) * (dh[1] - 2.0 * dh[2] * ry)
         # d(x, y)/dp: mx_j = k (rd[0,j] - rx rd[2,j]), k = h_z / g_z; object position rows = Ry(alpha)^T m
         ku = (h[2] * su) * st["inv"]
         kv = (h[2] * sv) * st["inv"]
+        if e is not None:
+            ku = ku * (1.0 + e)
+            kv = kv * (1.0 + e)
         kur = ku * rx
         kvr = kv * ry
         mx0 = rd[0, 0] * ku - rd[2, 0] * kur
@@ -469,6 +507,10 @@ class MotionKernel:
         self.c0, self.r0 = detector.centre_px
         self.pitch = detector.pixel_pitch_m
         self.observed = np.concatenate([obs.uv_px[:, 0], obs.uv_px[:, 1]])  # (2Q,) blocked
+        # ellipse centre (module docstring): E - P = (1 + e)(C - P), e = (b / D)^2 with the source
+        # fixed here, so a constant factor on the magnification of each observation
+        self.ellipse_gain = (None if obs.minor_axis_px is None
+                             else 1.0 + (obs.minor_axis_px * self.pitch / self.source[2]) ** 2)
 
     def _check_m(self, m):
         m = np.asarray(m, dtype=float)
@@ -502,6 +544,8 @@ class MotionKernel:
         dy = pe[1] + base[1]
         dz = pe[2] + base[2]
         mag = -s[2] / dz
+        if self.ellipse_gain is not None:
+            mag = mag * self.ellipse_gain                          # every Jacobian row is linear in mag
         r = np.empty(2 * q)
         xy = None
         if self.has_image:

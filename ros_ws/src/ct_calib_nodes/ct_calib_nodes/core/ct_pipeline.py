@@ -33,6 +33,7 @@ class PositionData:
     uv_px: list = field(default_factory=list)           # per frame (Q_j, 2)
     sphere_index: list = field(default_factory=list)    # per frame (Q_j,)
     sigma_px: list = field(default_factory=list)        # per frame (Q_j,)
+    minor_axis_px: list = field(default_factory=list)   # per frame (Q_j,) or None
     n_rejected: int = 0
 
     @property
@@ -49,10 +50,13 @@ class PositionData:
         pick = lambda seq: [seq[i] for i in order]  # noqa: E731
         sig = pick(self.sigma_px)
         use_sigma = all(len(s) == 0 or np.all(np.asarray(s) > 0) for s in sig)
+        minor = pick(self.minor_axis_px)
+        use_minor = all(m is not None for m in minor)      # the ellipse-centre model needs every axis
         return CentreObservations.from_views(
             pick(self.uv_px), pick(self.sphere_index), np.asarray(self.alphas_rad)[order],
             stamp_ns_per_view=np.asarray(self.stamps_ns, dtype=np.int64)[order],
-            sigma_px_per_view=sig if use_sigma else None)
+            sigma_px_per_view=sig if use_sigma else None,
+            minor_axis_px_per_view=minor if use_minor else None)
 
 
 class CampaignAccumulator:
@@ -77,8 +81,10 @@ class CampaignAccumulator:
         return len(self.positions)
 
     def add_frame(self, stamp_ns: int, alpha_rad: float, srd_reported_m: float, sphere_index, uv_px,
-                  sigma_px=None, n_rejected: int = 0) -> int:
+                  sigma_px=None, n_rejected: int = 0, minor_axis_px=None) -> int:
         """Add the accepted observations of one frame; returns its position index.
+
+        ``minor_axis_px`` (Q,): semi-minor axes of the shadow ellipses [px], or None.
 
         A frame whose stamp was already added is ignored (returns -1): replays and
         re-deliveries must not count twice.
@@ -93,6 +99,9 @@ class CampaignAccumulator:
         if len(idx) != len(uv):
             raise ValueError(f"{len(idx)} sphere indices but {len(uv)} centres")
         sig = np.full(len(idx), -1.0) if sigma_px is None else np.asarray(sigma_px, dtype=float).reshape(-1)
+        minor = None if minor_axis_px is None else np.asarray(minor_axis_px, dtype=float).reshape(-1)
+        if minor is not None and len(minor) != len(idx):
+            raise ValueError(f"{len(idx)} sphere indices but {len(minor)} ellipse axes")
         k = self.position_of(srd_reported_m)
         if k == len(self.positions):
             self.positions.append(PositionData(float(srd_reported_m)))
@@ -102,6 +111,7 @@ class CampaignAccumulator:
         p.uv_px.append(uv)
         p.sphere_index.append(idx)
         p.sigma_px.append(sig)
+        p.minor_axis_px.append(minor)
         p.n_rejected += int(n_rejected)
         self._seen_stamps.add(stamp_ns)
         return k
@@ -156,18 +166,28 @@ def static_result_from_estimate(w, covariance, centres_of_m, *, names=None, unit
         f_scale_px=None, terms=(), centres_of_m=centres, weights=None)
 
 
-def campaign_error_map(acc: CampaignAccumulator, motion_results: dict, static: StaticResult):
+def campaign_error_map(acc: CampaignAccumulator, motion_results: dict, static: StaticResult, *,
+                       definition: str = "travel", name: str = "multi", index_repeatability_rad=None):
     """Error map over the positions solved so far (position 0 = reference, zero motion).
+
+    The uncertainty is the joint covariance of all positions: each position's
+    own (conditional) covariance plus the static geometry's, which every
+    position shares (error_map.joint_motion_covariance).
 
     Parameters
     ----------
     motion_results : dict k -> MotionResult (successful ones are used)
+    definition : {"travel", "detector"}
+        See error_map.py.
+    name : str
+    index_repeatability_rad : float, optional
+        Rotary indexing repeatability to include in u(yaw) [rad].
 
     Returns
     -------
     (ErrorMap, ks) with ks the position indices included (0 first).
     """
-    from .error_map import error_map  # noqa: PLC0415
+    from .error_map import error_map, joint_motion_covariance  # noqa: PLC0415
 
     ks = [0] + sorted(k for k, r in motion_results.items() if k > 0 and r.success)
     motions = np.zeros((len(ks), 6))
@@ -184,10 +204,10 @@ def campaign_error_map(acc: CampaignAccumulator, motion_results: dict, static: S
         else:
             have_sens = False
     srd = np.array([acc.positions[k].srd_reported_m for k in ks])
-    if have_sens:
-        # joint covariance: the static geometry's uncertainty is shared by all positions
-        return error_map(srd, motions, covs, static_sensitivities=sens, static_covariance=static.covariance), ks
-    return error_map(srd, motions, covs), ks
+    joint = (joint_motion_covariance(covs, sens, static.covariance) if have_sens
+             else joint_motion_covariance(covs))
+    return error_map(srd, motions, joint, definition=definition, name=name,
+                     index_repeatability_rad=index_repeatability_rad), ks
 
 
 def campaign_residuals(acc: CampaignAccumulator, static_x, centres_of_m, detector: DetectorSpec,
@@ -252,9 +272,9 @@ class FrameResult:
     fit_rms_px: np.ndarray    # (M,)
 
     def accepted(self):
-        """(ids, centre_px, sigma_px) of the accepted observations."""
+        """(ids, centre_px, sigma_px, semi-minor axis [px]) of the accepted observations."""
         ok = self.flag == 0
-        return self.ids[ok], self.centre_px[ok], self.sigma_px[ok]
+        return self.ids[ok], self.centre_px[ok], self.sigma_px[ok], self.semi_axes_px[ok, 1]
 
 
 class FrameProcessor:

@@ -316,3 +316,47 @@ def project_df(source_df_m, points_df_m, detector: DetectorSpec) -> np.ndarray:
 def forward_df(geom: DetectorFrameGeometry, motion, alpha_rad, detector: DetectorSpec) -> np.ndarray:
     """Modelled centre projections at stage position k, shape (M, N, 2) [px]."""
     return project_df(geom.source_df_m, sphere_centres_df(geom, motion, alpha_rad), detector)
+
+
+def silhouette_ellipses(source_df_m, centres_df_m, radii_m):
+    """Exact shadow ellipses of spheres seen from a point source on the plane z = 0.
+
+    The tangent cone from S to a sphere (C, r) is
+    ``((q . a)^2 - cos^2(beta) |q|^2 = 0`` with ``q = X - S``, ``a = (C - S)/|C - S|``,
+    ``sin(beta) = r / |C - S|``; on z = 0 it is a conic in (x, y) whose centre
+    and axes are returned.
+
+    Parameters
+    ----------
+    source_df_m : array_like of shape (3,)
+    centres_df_m : array_like of shape (N, 3)
+    radii_m : array_like of shape (N,)
+
+    Returns
+    -------
+    centre_m : ndarray of shape (N, 2)
+        Ellipse centre (x, y) in the detector plane [m].
+    semi_axes_m : ndarray of shape (N, 2)
+        Semi-major, semi-minor axis [m].
+    """
+    s = np.asarray(source_df_m, dtype=float)
+    c = np.asarray(centres_df_m, dtype=float)
+    r = np.asarray(radii_m, dtype=float)
+    d = c - s
+    dist = np.linalg.norm(d, axis=1)
+    if np.any(dist <= r):
+        raise ValueError("focal spot inside a sphere")
+    a = d / dist[:, None]
+    cos2 = 1.0 - (r / dist) ** 2
+    p = np.array([[1.0, 0.0, -s[0]], [0.0, 1.0, -s[1]], [0.0, 0.0, -s[2]]])
+    m = a[:, :, None] * a[:, None, :] - cos2[:, None, None] * np.eye(3)
+    q = np.einsum("ji,njk,kl->nil", p, m, p)
+    a2 = q[:, :2, :2]
+    b = q[:, :2, 2]
+    centre = -np.linalg.solve(a2, b[:, :, None])[:, :, 0]
+    f0 = q[:, 2, 2] + np.einsum("ni,ni->n", b, centre)
+    ev = np.linalg.eigvalsh(a2)                  # ascending, both < 0 for an ellipse
+    if np.any(ev >= 0) or np.any(f0 <= 0):
+        raise ValueError("a sphere's shadow on the detector plane is not an ellipse")
+    axes = np.sqrt(-f0[:, None] / ev)            # ev[0] most negative -> minor axis
+    return centre, axes[:, ::-1].copy()

@@ -56,6 +56,11 @@ class CentreObservations:
         Standard uncertainty of each coordinate [px], if the detector
         reports one. ``None`` means "equal, unknown": the solvers then
         estimate it from the residuals.
+    minor_axis_px : ndarray of shape (Q,) or None
+        Semi-minor axis of the shadow ellipse the centre was fitted to [px].
+        With it the solvers model the observed point as the ellipse centre
+        (not the projection of the sphere centre; see ct_model.py); None
+        means the observations ARE centre projections.
 
     The constructor converts and validates everything (float64 / int64,
     shapes, NaN / inf, negative indices) and raises ``ValueError`` naming the
@@ -68,6 +73,7 @@ class CentreObservations:
     view_index: np.ndarray
     stamp_ns: np.ndarray | None = None
     sigma_px: np.ndarray | None = None
+    minor_axis_px: np.ndarray | None = None
 
     def __post_init__(self):
         uv = np.asarray(self.uv_px, dtype=float)
@@ -112,14 +118,22 @@ class CentreObservations:
                 raise ValueError(f"sigma_px must have shape ({q},), got {sg.shape}")
             if not np.all(np.isfinite(sg)) or np.any(sg <= 0):
                 raise ValueError("sigma_px must be finite and > 0")
+        mb = None
+        if self.minor_axis_px is not None:
+            mb = np.asarray(self.minor_axis_px, dtype=float)
+            if mb.shape != (q,):
+                raise ValueError(f"minor_axis_px must have shape ({q},), got {mb.shape}")
+            if not np.all(np.isfinite(mb)) or np.any(mb <= 0):
+                raise ValueError("minor_axis_px must be finite and > 0")
         for name, val in (("uv_px", uv), ("sphere_index", si), ("alpha_rad", al),
-                          ("view_index", vi), ("stamp_ns", st), ("sigma_px", sg)):
+                          ("view_index", vi), ("stamp_ns", st), ("sigma_px", sg), ("minor_axis_px", mb)):
             object.__setattr__(self, name, None if val is None else _readonly(val))
 
     # ------------------------------------------------------------------ helpers
     @classmethod
     def from_views(cls, uv_px_per_view, sphere_index_per_view, alpha_rad_per_view,
-                   stamp_ns_per_view=None, sigma_px_per_view=None) -> "CentreObservations":
+                   stamp_ns_per_view=None, sigma_px_per_view=None,
+                   minor_axis_px_per_view=None) -> "CentreObservations":
         """Build from per-projection lists (what a detector produces image by image).
 
         Parameters
@@ -130,6 +144,7 @@ class CentreObservations:
             One rotary angle per projection [rad].
         stamp_ns_per_view : array_like of shape (M,), int, optional
         sigma_px_per_view : sequence of array_like of shape (Q_j,), optional
+        minor_axis_px_per_view : sequence of array_like of shape (Q_j,), optional
         """
         m = len(uv_px_per_view)
         if len(sphere_index_per_view) != m or len(np.atleast_1d(alpha_rad_per_view)) != m:
@@ -142,9 +157,11 @@ class CentreObservations:
             np.asarray(stamp_ns_per_view, dtype=np.int64), counts)
         sig = None if sigma_px_per_view is None else np.concatenate(
             [np.asarray(s, dtype=float).reshape(-1) for s in sigma_px_per_view])
+        minor = None if minor_axis_px_per_view is None else np.concatenate(
+            [np.asarray(s, dtype=float).reshape(-1) for s in minor_axis_px_per_view])
         return cls(uv_px=np.concatenate(uv) if m else np.zeros((0, 2)),
                    sphere_index=np.concatenate([np.asarray(s).reshape(-1) for s in sphere_index_per_view]).astype(np.int64) if m else np.zeros(0, np.int64),
-                   alpha_rad=alpha, view_index=view, stamp_ns=stamps, sigma_px=sig)
+                   alpha_rad=alpha, view_index=view, stamp_ns=stamps, sigma_px=sig, minor_axis_px=minor)
 
     @property
     def n_obs(self) -> int:
@@ -166,7 +183,8 @@ class CentreObservations:
         m = np.asarray(mask)
         pick = lambda a: None if a is None else a[m]
         return CentreObservations(self.uv_px[m], self.sphere_index[m], self.alpha_rad[m],
-                                  self.view_index[m], pick(self.stamp_ns), pick(self.sigma_px))
+                                  self.view_index[m], pick(self.stamp_ns), pick(self.sigma_px),
+                                  pick(self.minor_axis_px))
 
     def first_view(self) -> "CentreObservations":
         """Observations of the first projection (smallest view_index): the paper's j = 1."""

@@ -32,13 +32,14 @@ Hidden physics (all off by default; the solvers are never told about them):
   ``x_rec = x * (1 + k1 * |x|^2)``; pixel (c, r) integrates the rays whose
   recorded position falls in it. ``centre_px`` in the truth is the recorded
   position of the true centre projection.
-- ``ellipse_centre_bias``: when False (default) each sphere's shadow is
-  translated in the detector plane so that its ellipse centre coincides with
-  the true centre projection (the textbook model the solvers assume); when True
-  the exact cone-sphere silhouette is rendered, whose ellipse centre lies
-  further from the principal point than the centre projection by about
+- ``ellipse_centre_bias`` (physics, ON by default): the exact cone-sphere
+  silhouette is rendered, whose ellipse centre lies further from the
+  principal point than the centre projection by about
   ``SDD * tan(psi) * sec^2(psi) * (r / D)^2`` (Clackdoyle & Mennessier 2011;
-  Deng et al. 2015), see :func:`silhouette_ellipses`.
+  Deng et al. 2015), see :func:`geometry.silhouette_ellipses`. The solvers
+  model it (ct_model.py). False translates each shadow so that its ellipse
+  centre coincides with the centre projection (the textbook model of the
+  paper), for tests of that model only.
 """
 
 from __future__ import annotations
@@ -48,11 +49,12 @@ from dataclasses import dataclass
 import numpy as np
 import cv2
 
-from .geometry import (
+from .geometry import (  # noqa: F401 - silhouette_ellipses is part of this module's interface
     DetectorFrameGeometry,
     DetectorSpec,
     _check_static,
     project_df,
+    silhouette_ellipses,
     sphere_centres_df,
     static_to_detector_frame,
 )
@@ -99,8 +101,9 @@ class RenderSettings:
         Hidden: radial distortion k1 [1/m^2] of the recorded landing position,
         ``x_rec = x (1 + k1 |x|^2)`` about the detector centre; 0 = off.
     ellipse_centre_bias : bool
-        Hidden: render the exact cone-sphere silhouette (True) or translate
-        each shadow so its ellipse centre is the centre projection (False).
+        Physics, default True: render the exact cone-sphere silhouette; False
+        translates each shadow so its ellipse centre is the centre projection
+        (the paper's textbook model, for tests of it).
     touch_gap_px : float
         Two shadows count as ``overlapping`` when their bounding circles
         (radius = ellipse semi-major axis) come closer than this [px].
@@ -119,7 +122,7 @@ class RenderSettings:
     encoder_eccentricity_rad: float = 0.0
     encoder_phase_rad: float = 0.0
     detector_distortion_k1_per_m2: float = 0.0
-    ellipse_centre_bias: bool = False
+    ellipse_centre_bias: bool = True
     touch_gap_px: float = 1.0
 
     def __post_init__(self):
@@ -228,50 +231,6 @@ class RenderedFrame:
 # --------------------------------------------------------------------------
 # Analytic pieces
 # --------------------------------------------------------------------------
-
-def silhouette_ellipses(source_df_m, centres_df_m, radii_m):
-    """Exact shadow ellipses of spheres seen from a point source on the plane z = 0.
-
-    The tangent cone from S to a sphere (C, r) is
-    ``((q . a)^2 - cos^2(beta) |q|^2 = 0`` with ``q = X - S``, ``a = (C - S)/|C - S|``,
-    ``sin(beta) = r / |C - S|``; on z = 0 it is a conic in (x, y) whose centre
-    and axes are returned.
-
-    Parameters
-    ----------
-    source_df_m : array_like of shape (3,)
-    centres_df_m : array_like of shape (N, 3)
-    radii_m : array_like of shape (N,)
-
-    Returns
-    -------
-    centre_m : ndarray of shape (N, 2)
-        Ellipse centre (x, y) in the detector plane [m].
-    semi_axes_m : ndarray of shape (N, 2)
-        Semi-major, semi-minor axis [m].
-    """
-    s = np.asarray(source_df_m, dtype=float)
-    c = np.asarray(centres_df_m, dtype=float)
-    r = np.asarray(radii_m, dtype=float)
-    d = c - s
-    dist = np.linalg.norm(d, axis=1)
-    if np.any(dist <= r):
-        raise ValueError("focal spot inside a sphere")
-    a = d / dist[:, None]
-    cos2 = 1.0 - (r / dist) ** 2
-    p = np.array([[1.0, 0.0, -s[0]], [0.0, 1.0, -s[1]], [0.0, 0.0, -s[2]]])
-    m = a[:, :, None] * a[:, None, :] - cos2[:, None, None] * np.eye(3)
-    q = np.einsum("ji,njk,kl->nil", p, m, p)
-    a2 = q[:, :2, :2]
-    b = q[:, :2, 2]
-    centre = -np.linalg.solve(a2, b[:, :, None])[:, :, 0]
-    f0 = q[:, 2, 2] + np.einsum("ni,ni->n", b, centre)
-    ev = np.linalg.eigvalsh(a2)                  # ascending, both < 0 for an ellipse
-    if np.any(ev >= 0) or np.any(f0 <= 0):
-        raise ValueError("a sphere's shadow on the detector plane is not an ellipse")
-    axes = np.sqrt(-f0[:, None] / ev)            # ev[0] most negative -> minor axis
-    return centre, axes[:, ::-1].copy()
-
 
 def distort(xy_m, k1_per_m2: float) -> np.ndarray:
     """Landing position -> recorded position, ``x (1 + k1 |x|^2)``; shape (..., 2) [m]."""

@@ -5,9 +5,12 @@ ct_model.py), plus the optional terms' own correction formulas, so a solver
 bug does not cancel against a simulator bug. It returns the truth alongside
 the data; only tests compare against it.
 
-Also provides :func:`multi_helix_centres`, a 49-sphere multi-helix reference
-object like the paper's (the official phantom lives elsewhere; tests use
-this one so they do not depend on it).
+Observations are either projections of the sphere centres (the paper's
+model) or, with ``contour_radius_m``, the centres of the exact silhouette
+ellipses of cones of that radius about each sphere centre, computed with the
+general conic of geometry.silhouette_ellipses (not with the closed form the
+solvers use), with the ellipses' semi-minor axes, as a detector reports them.
+The reference object of the tests is the shipped one (phantom.helix49).
 """
 
 from __future__ import annotations
@@ -16,30 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import DetectorSpec, project_df, sphere_centres_df, static_to_detector_frame
+from .geometry import DetectorSpec, project_df, silhouette_ellipses, sphere_centres_df, static_to_detector_frame
 from .observations import CentreObservations
 from .terms import check_terms
-
-
-def multi_helix_centres(n_spheres: int = 49, radius_m: float = 0.0375, half_height_m: float = 0.048,
-                        n_helices: int = 7, turns: float = 1.0) -> np.ndarray:
-    """Sphere centres of a multi-helix reference object in {OF} [m].
-
-    ``n_helices`` interleaved helices on a cylinder of ``radius_m`` about
-    the {OF} Y axis, heights evenly spread over +-``half_height_m``; sphere
-    0 sits on the +Z axis of {OF}, as in the paper's definition of {OF}.
-
-    Returns
-    -------
-    ndarray of shape (n_spheres, 3)
-    """
-    k = np.arange(n_spheres)
-    y = -half_height_m + 2 * half_height_m * k / max(n_spheres - 1, 1)
-    helix = k % n_helices
-    along = k // n_helices
-    per = int(np.ceil(n_spheres / n_helices))
-    ang = 2 * np.pi * (helix / n_helices + turns * along / per)
-    return np.stack([radius_m * np.sin(ang), y, radius_m * np.cos(ang)], axis=1)
 
 
 @dataclass(frozen=True)
@@ -69,7 +51,9 @@ def simulate_observations(static_w, centres_of_m, detector: DetectorSpec, alpha_
                           sphere_diameter_m: float = 0.003, reject_overlap: bool = True,
                           overlap_factor: float = 1.1, edge_margin_px: float = 2.0,
                           outlier_fraction: float = 0.0, outlier_px: float = 5.0,
-                          stamp_period_ns: int = 100_000_000, report_sigma: bool = False) -> SimulatedObservations:
+                          stamp_period_ns: int = 100_000_000, report_sigma: bool = False,
+                          contour_radius_m=None, view_jitter_px: float = 0.0,
+                          alpha_offset_rad: float = 0.0) -> SimulatedObservations:
     """Simulate observed centre projections at one stage position.
 
     Parameters
@@ -100,6 +84,16 @@ def simulate_observations(static_w, centres_of_m, detector: DetectorSpec, alpha_
         Time between projections (stamps start at 0).
     report_sigma : bool
         Fill ``sigma_px`` in the observations with the true sigma.
+    contour_radius_m : float or array_like of shape (N,), optional
+        Observe the centre of the silhouette ellipse of a sphere of this
+        radius about each centre (a detector's iso-transmission contour lies
+        inside the full silhouette), and report its semi-minor axis in
+        ``obs.minor_axis_px``. None: centre projections, no axes.
+    view_jitter_px : float
+        Standard deviation of a shift shared by every observation of a view
+        (per coordinate) [px]: focal-spot jitter, per-projection wobble.
+    alpha_offset_rad : float
+        True rotary angle = reported + this (a rotary zero-index offset).
 
     Returns
     -------
@@ -119,12 +113,20 @@ def simulate_observations(static_w, centres_of_m, detector: DetectorSpec, alpha_
         k += t.n_params
     # per-view observation stub for the terms (alpha and stamp of each view)
     view_obs = CentreObservations(np.zeros((m, 2)), np.zeros(m, np.int64), alpha, np.arange(m), stamps)
-    alpha_true = alpha.copy()
+    alpha_true = alpha + float(alpha_offset_rad)
     for t, p in zip(terms, split):
         if t.stage == "angle":
             alpha_true = alpha_true + t.angle_delta(p, alpha, view_obs)[0]
     pts = sphere_centres_df(geom, mot, alpha_true)                     # (M, N, 3)
-    uv = project_df(geom.source_df_m, pts, detector)                   # (M, N, 2)
+    minor_px = None
+    if contour_radius_m is None:
+        uv = project_df(geom.source_df_m, pts, detector)               # (M, N, 2)
+    else:
+        rad = np.broadcast_to(np.asarray(contour_radius_m, dtype=float), (n,))
+        ell, axes = silhouette_ellipses(geom.source_df_m, pts.reshape(-1, 3), np.tile(rad, m))
+        c, r = detector.pixels_from_metric(ell[:, 0], ell[:, 1])
+        uv = np.stack([c, r], axis=-1).reshape(m, n, 2)
+        minor_px = (axes[:, 1] / detector.pixel_pitch_m).reshape(m, n)
     if any(t.stage == "image" for t in terms):
         view_i = np.repeat(np.arange(m), n)
         flat_obs = CentreObservations(np.zeros((m * n, 2)), np.tile(np.arange(n), m), alpha[view_i],
@@ -155,6 +157,8 @@ def simulate_observations(static_w, centres_of_m, detector: DetectorSpec, alpha_
     vi, si = np.nonzero(keep)
     uv_true = uv[vi, si]
     uv_obs = uv_true + rng.normal(0.0, sigma_px, uv_true.shape)
+    if view_jitter_px > 0:
+        uv_obs += rng.normal(0.0, view_jitter_px, (m, 2))[vi]
     out = np.zeros(len(vi), dtype=bool)
     if outlier_fraction > 0:
         n_o = int(round(outlier_fraction * len(vi)))
@@ -163,6 +167,7 @@ def simulate_observations(static_w, centres_of_m, detector: DetectorSpec, alpha_
         uv_obs[pick] += outlier_px * np.stack([np.cos(ang), np.sin(ang)], axis=1)
         out[pick] = True
     obs = CentreObservations(uv_px=uv_obs, sphere_index=si, alpha_rad=alpha[vi], view_index=vi,
-                             stamp_ns=stamps[vi], sigma_px=np.full(len(vi), sigma_px) if report_sigma else None)
+                             stamp_ns=stamps[vi], sigma_px=np.full(len(vi), sigma_px) if report_sigma else None,
+                             minor_axis_px=None if minor_px is None else minor_px[vi, si])
     return SimulatedObservations(obs=obs, uv_true_px=uv_true, outlier_mask=out,
                                  n_overlap_rejected=n_overlap, n_out_of_view=n_out)

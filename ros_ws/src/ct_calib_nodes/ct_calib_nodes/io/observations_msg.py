@@ -10,7 +10,11 @@ ACCEPTED = 0
 
 
 def frame_observations(msg, id_to_index: dict) -> tuple:
-    """SphereObservationArray -> (stamp_ns, alpha, srd, sphere_index (Q,), uv (Q,2), sigma (Q,), n_rejected).
+    """SphereObservationArray -> (stamp_ns, alpha, srd, sphere_index (Q,), uv (Q,2), sigma (Q,), n_rejected,
+    minor_axis (Q,) or None).
+
+    ``minor_axis`` holds the fitted shadow ellipses' semi-minor axes [px] (the solvers then model
+    the ellipse centre); None when any accepted observation lacks a finite positive one.
 
     Only ACCEPTED observations with a known sphere id are returned; raises MessageError on NaN
     values, unknown ids or duplicate ids in one frame.
@@ -18,7 +22,7 @@ def frame_observations(msg, id_to_index: dict) -> tuple:
     alpha, srd = float(msg.rotary_angle_rad), float(msg.srd_reported_m)
     if not (np.isfinite(alpha) and np.isfinite(srd) and srd > 0):
         raise MessageError(f"bad stage reading in observations: alpha={alpha}, srd={srd}")
-    idx, uv, sig, rejected = [], [], [], 0
+    idx, uv, sig, minor, rejected = [], [], [], [], 0
     for o in msg.observations:
         if int(o.flag) != ACCEPTED:
             rejected += 1
@@ -31,7 +35,11 @@ def frame_observations(msg, id_to_index: dict) -> tuple:
         idx.append(id_to_index[int(o.sphere_id)])
         uv.append((c, r))
         sig.append(s if np.isfinite(s) and s > 0 else -1.0)
+        minor.append(float(o.semi_minor_px))
     if len(set(idx)) != len(idx):
         raise MessageError("a sphere id appears twice in one frame")
+    minor = np.asarray(minor, dtype=float)
+    usable = minor.size > 0 and bool(np.all(np.isfinite(minor) & (minor > 0)))
     return (stamp_ns(msg.header.stamp), alpha, srd, np.asarray(idx, dtype=np.int64),
-            np.asarray(uv, dtype=float).reshape(-1, 2), np.asarray(sig, dtype=float), rejected)
+            np.asarray(uv, dtype=float).reshape(-1, 2), np.asarray(sig, dtype=float), rejected,
+            minor if usable else None)

@@ -54,7 +54,8 @@ PARAMS = {
     "encoder_phase_rad": (0.0, "hidden: phase of the encoder error [rad]"),
     "focal_spot_drift_m_per_s": ([0.0, 0.0, 0.0], "hidden: focal-spot drift velocity in the detector frame [m/s]"),
     "detector_distortion_k1_per_m2": (0.0, "hidden: radial detector distortion k1 [1/m^2]"),
-    "ellipse_centre_bias": (False, "hidden: render exact cone-sphere silhouettes (ellipse centre != centre projection)"),
+    "ellipse_centre_bias": (True, "render exact cone-sphere silhouettes (ellipse centre != centre projection; "
+                                  "the solvers model it); false = shift shadows onto the centre projection"),
 }
 
 

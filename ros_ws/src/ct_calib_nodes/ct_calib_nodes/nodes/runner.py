@@ -94,8 +94,7 @@ class ObservationIntake:
         from ct_calib_nodes.io.observations_msg import frame_observations  # noqa: PLC0415
 
         try:
-            stamp, alpha, srd, idx, uv, sig, nrej = frame_observations(msg, self.id_to_index)
-            k = self.acc.add_frame(stamp, alpha, srd, idx, uv, sig, nrej)
+            k = self.acc.add_frame(*frame_observations(msg, self.id_to_index))
         except (MessageError, ValueError) as exc:
             self.bad_messages += 1
             self.node.get_logger().warning(f"skipped bad observation message #{self.bad_messages}: {exc}")
