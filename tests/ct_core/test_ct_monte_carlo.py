@@ -3,6 +3,7 @@ and the Cramer-Rao bound (seeded)."""
 
 import numpy as np
 
+from ct_calib_nodes.core.ct_model import static_residuals_jac
 from ct_calib_nodes.core.simulate_obs import simulate_observations
 from ct_calib_nodes.core.static_solver import solve_static
 
@@ -22,8 +23,9 @@ def test_monte_carlo_zscores_and_efficiency(campaign, centres, detector, alphas)
         assert r.success, r.message
         est.append(r.x)
         zs.append((r.x - w) / r.std)                   # reported (residual-variance) covariance
-        if crlb is None:
-            crlb = SIGMA_PX ** 2 * r.normal_inverse    # Cramer-Rao bound from the same Jacobian
+        if crlb is None:                               # Cramer-Rao bound: sigma^2 (J^T J)^-1 at the truth
+            _, jac = static_residuals_jac(w, sim.obs, centres, detector)
+            crlb = SIGMA_PX ** 2 * np.linalg.inv(jac.T @ jac)
     est, zs = np.array(est), np.array(zs)
     z_sd = zs.std(axis=0, ddof=1)
     z_mean = zs.mean(axis=0)

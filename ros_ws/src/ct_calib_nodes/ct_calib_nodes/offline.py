@@ -127,14 +127,17 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
         return out
 
     out.static = solve_campaign_static(out.acc, ref.centres_of_m, instrument.detector,
-                                       instrument.sdd_reported_m, loss=loss)
+                                       instrument.sdd_reported_m, loss=loss,
+                                       centre_uncertainty_m=ref.center_uncertainty_m)
     say(f"static geometry: {out.static.message}; rms {out.static.rms_px:.4f} px")
     if not out.static.success:
         out.problems.append(f"static geometry not usable: {out.static.message}")
         return out
     # the error-motion node receives the static estimate as published: start from the same thing
     published = static_result_from_estimate(out.static.x, out.static.covariance, ref.centres_of_m,
-                                            rms_px=out.static.rms_px)
+                                            rms_px=out.static.rms_px, obs=out.acc.positions[0].observations(),
+                                            detector=instrument.detector,
+                                            centre_uncertainty_m=ref.center_uncertainty_m)
     for mode in MODES:
         out.motions[mode] = {}
         for k in range(1, len(out.acc.positions)):

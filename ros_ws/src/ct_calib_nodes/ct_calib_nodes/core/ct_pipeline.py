@@ -123,7 +123,9 @@ class CampaignAccumulator:
 
 def solve_campaign_static(acc: CampaignAccumulator, centres_of_m, detector: DetectorSpec,
                           sdd_reported_m: float, **kwargs) -> StaticResult:
-    """Static geometry from the first stage position of a campaign (section 3.1)."""
+    """Static geometry from the first stage position of a campaign (section 3.1).
+
+    kwargs go to solve_static (e.g. ``centre_uncertainty_m`` from the reference object)."""
     if not acc.positions:
         raise ValueError("no observations yet")
     p = acc.positions[0]
@@ -141,29 +143,47 @@ def solve_campaign_position(acc: CampaignAccumulator, k: int, static: StaticResu
 
 
 def static_result_from_estimate(w, covariance, centres_of_m, *, names=None, units=None, rms_px=np.nan,
-                                n_obs=0, message="rebuilt from a published estimate") -> StaticResult:
+                                n_obs=0, message="rebuilt from a published estimate", obs=None, detector=None,
+                                centre_uncertainty_m=None) -> StaticResult:
     """A StaticResult holding a published static estimate (values and covariance).
 
     Lets a consumer of ``/ct/geometry`` (or of a results file) run the error-motion
     solver with the static uncertainty propagated, exactly as if it had solved
-    the static geometry itself. Fields that only the original solve knows
+    the static geometry itself. With the first position's observations ``obs``
+    (and the ``detector``) the uncertainty is rebuilt from the data at the
+    published estimate, as the static solver computes it (noise model,
+    noise-only covariance, sensitivity to the calibrated centres): the
+    error-motion node and the offline solve then propagate the centres'
+    uncertainty through both paths. Fields only the original solve knows
     (residuals, evaluation counts) are empty.
     """
     from .geometry import STATIC_PARAM_NAMES, STATIC_PARAM_UNITS, static_to_detector_frame  # noqa: PLC0415
 
     x = np.asarray(w, dtype=float)
     cov = np.asarray(covariance, dtype=float) if covariance is not None else np.full((len(x), len(x)), np.nan)
+    centres = np.asarray(centres_of_m, dtype=float)
+    noise = cov_noise = centre_sens = u_c = None
+    if obs is not None and detector is not None and len(x) == 13 and obs.n_obs > 0:
+        from .ct_model import StaticKernel  # noqa: PLC0415
+        from .static_solver import static_uncertainty  # noqa: PLC0415
+
+        kern = StaticKernel(obs, centres, detector)
+        sigma = None if obs.sigma_px is None else kern.blocked_weights(obs.sigma_px)
+        _info, noise, cov_noise, centre_sens, _total = static_uncertainty(x, kern, obs, sigma, len(centres),
+                                                                          centre_uncertainty_m)
+        if centre_sens is not None:
+            u_c = np.broadcast_to(np.asarray(centre_uncertainty_m, dtype=float), (len(centres),))
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = cov / np.outer(sd, sd)
-    centres = np.asarray(centres_of_m, dtype=float)
     return StaticResult(
         x=x, names=tuple(names or STATIC_PARAM_NAMES), units=tuple(units or STATIC_PARAM_UNITS),
         covariance=cov, correlation=corr, normal_inverse=cov, variance_factor=1.0,
         residuals_px=np.zeros((0, 2)), rms_px=float(rms_px), cost=np.nan, success=True, status=0,
         message=message, nfev=0, njev=0, n_iter=0, n_obs=int(n_obs), n_views=0, n_spheres=len(centres),
         condition=np.nan, geometry=static_to_detector_frame(x[:13], centres), x0=x.copy(), loss="linear",
-        f_scale_px=None, terms=(), centres_of_m=centres, weights=None)
+        f_scale_px=None, terms=(), centres_of_m=centres, weights=None, noise=noise, covariance_noise=cov_noise,
+        centre_sensitivity=centre_sens, centre_uncertainty_m=u_c)
 
 
 def campaign_error_map(acc: CampaignAccumulator, motion_results: dict, static: StaticResult, *,
@@ -194,7 +214,12 @@ def campaign_error_map(acc: CampaignAccumulator, motion_results: dict, static: S
     covs = np.zeros((len(ks), 6, 6))
     n_s = len(static.x)
     sens = np.zeros((len(ks), 6, n_s))
-    have_sens = static.covariance is not None and np.all(np.isfinite(static.covariance))
+    s_noise = static.covariance if static.covariance_noise is None else static.covariance_noise
+    have_sens = s_noise is not None and np.all(np.isfinite(s_noise))
+    u_c = static.centre_uncertainty_m
+    n_c = 0 if static.centre_sensitivity is None else static.centre_sensitivity.shape[1]
+    csens = np.zeros((len(ks), 6, n_c))
+    have_centres = u_c is not None and n_c > 0
     for i, k in enumerate(ks[1:], start=1):
         r = motion_results[k]
         motions[i] = r.x
@@ -203,9 +228,17 @@ def campaign_error_map(acc: CampaignAccumulator, motion_results: dict, static: S
             sens[i] = r.static_sensitivity
         else:
             have_sens = False
+        if have_centres and getattr(r, "centre_sensitivity", None) is not None and r.centre_sensitivity.shape == (6, n_c):
+            csens[i] = r.centre_sensitivity
+        else:
+            have_centres = False
     srd = np.array([acc.positions[k].srd_reported_m for k in ks])
-    joint = (joint_motion_covariance(covs, sens, static.covariance) if have_sens
-             else joint_motion_covariance(covs))
+    if have_sens and have_centres:
+        joint = joint_motion_covariance(covs, sens, s_noise, csens, np.diag(np.repeat(np.asarray(u_c) ** 2, 3)))
+    elif have_sens:
+        joint = joint_motion_covariance(covs, sens, static.covariance)
+    else:
+        joint = joint_motion_covariance(covs)
     return error_map(srd, motions, joint, definition=definition, name=name,
                      index_repeatability_rad=index_repeatability_rad), ks
 

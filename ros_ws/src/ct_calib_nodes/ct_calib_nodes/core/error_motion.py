@@ -7,16 +7,20 @@ static solve. Two modes, as in the paper: all projections ("multi") or a
 single projection ("single", the first one, j = 1, unless told otherwise).
 
 Uncertainty: ``covariance`` is CONDITIONAL on the static geometry (the
-static parameters taken as exact). ``covariance_total`` adds the static
-geometry's uncertainty, propagated linearly:
-``cov_total = cov_cond + A cov_static A^T`` with
+static parameters taken as exact): the observation noise of this position as
+estimated from its own residuals (noise.py: per-axis scale of the detector's
+sigma and a per-projection shared shift; in "single" mode the shared shift,
+invisible in one projection, comes from a multi-projection solve of the same
+position), in sandwich form. ``covariance_total`` adds the static geometry's
+noise, propagated linearly, ``A S_noise A^T`` with
 ``A = d m / d x_static = -(J_m^T W J_m)^-1 J_m^T W J_s`` (implicit-function
-theorem at the optimum; J_s by central differences with steps of 0.1
-standard uncertainty of each static parameter). Note that the static part
-is COMMON to all positions (the same static estimate is used for every k),
-so the total covariances of different k are correlated; error_map treats
-positions as independent, which is exact for the conditional covariance
-and an approximation for the total one (see doc/ct_core.md).
+theorem at the optimum; J_s by forward differences with steps of 0.1
+standard uncertainty of each static parameter), and, when the static result
+carries the calibrated centres' uncertainty, their effect ``H U H^T`` with
+``H = d m / d C`` through both paths (directly, and through the static
+geometry). The static and centre parts are COMMON to all positions;
+error_map.joint_motion_covariance builds the joint covariance from
+``covariance``, ``static_sensitivity`` and ``centre_sensitivity``.
 
 Entry point: :func:`solve_error_motion`.
 """
@@ -28,8 +32,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .ct_model import MotionKernel, lm_function
-from .geometry import MOTION_PARAM_NAMES, MOTION_PARAM_UNITS, DetectorFrameGeometry, DetectorSpec, static_to_detector_frame
+from .geometry import (MOTION_PARAM_NAMES, MOTION_PARAM_UNITS, DetectorFrameGeometry, DetectorSpec, motion_rotation,
+                       static_to_detector_frame)
 from .lm import LOSSES, STOL, correlation_from_covariance, covariance_from_jacobian, levenberg_marquardt
+from .noise import MAX_RMS_RATIO, NoiseModel, assess_fit, axis_weights_sigma, estimate_noise, sandwich_covariance
 from .observations import CentreObservations
 from .static_solver import StaticResult, _plain
 from .terms import check_terms
@@ -68,6 +74,11 @@ class MotionResult:
     static_sensitivity : ndarray of shape (6, n_static) or None
         A = d m / d x_static; error_map uses it to build the joint covariance
         of all positions (the static error is common to them).
+    centre_sensitivity : ndarray of shape (6, 3N) or None
+        H = d m / d (calibrated centres), total (direct and through the static geometry).
+    outcome : str
+        As StaticResult.outcome.
+    noise : NoiseModel or None
     """
 
     x: np.ndarray
@@ -95,6 +106,9 @@ class MotionResult:
     srd_reported_k_m: float
     srd_reported_1_m: float
     static_sensitivity: np.ndarray | None = None
+    centre_sensitivity: np.ndarray | None = None
+    outcome: str = "success"
+    noise: NoiseModel | None = None
 
     @property
     def std(self) -> np.ndarray:
@@ -119,24 +133,26 @@ class MotionResult:
             "nfev": self.nfev, "njev": self.njev, "n_iter": self.n_iter, "n_obs": self.n_obs,
             "n_views": self.n_views, "mode": self.mode, "condition": self.condition,
             "srd_reported_k_m": self.srd_reported_k_m, "srd_reported_1_m": self.srd_reported_1_m,
+            "outcome": self.outcome, "noise": None if self.noise is None else self.noise.to_dict(),
         })
 
 
-def _failed(obs, mode, x0, srd_k, srd_1, message):
+def _failed(obs, mode, x0, srd_k, srd_1, message, outcome="insufficient_data"):
     nan = np.full((6, 6), np.nan)
     return MotionResult(x=x0, names=MOTION_PARAM_NAMES, units=MOTION_PARAM_UNITS, covariance=nan,
                         covariance_total=None, correlation=nan, normal_inverse=nan, variance_factor=np.nan,
                         residuals_px=np.full((obs.n_obs, 2), np.nan), rms_px=np.nan, cost=np.nan, success=False,
                         status=-10, message=message, nfev=0, njev=0, n_iter=0, n_obs=obs.n_obs,
                         n_views=obs.n_views, mode=mode, condition=np.inf, x0=x0, srd_reported_k_m=srd_k,
-                        srd_reported_1_m=srd_1)
+                        srd_reported_1_m=srd_1, outcome=outcome)
 
 
 def solve_error_motion(obs_k: CentreObservations, static, detector: DetectorSpec, srd_reported_k_m: float,
                        srd_reported_1_m: float, *, mode: str = "multi", view_index: int | None = None,
                        include_static_uncertainty: bool = True, loss: str = "linear",
                        f_scale_px: float | None = None, x0=None, terms=(), term_params=(),
-                       max_iter: int = 100, max_rms_px: float = 2.0, cond_limit: float = 1e10) -> MotionResult:
+                       max_iter: int = 100, max_rms_px: float = 2.0, cond_limit: float = 1e10,
+                       max_rms_ratio: float = MAX_RMS_RATIO, view_sd_px=None) -> MotionResult:
     """Solve the error motion of stage position k (section 3.3).
 
     Parameters
@@ -162,6 +178,11 @@ def solve_error_motion(obs_k: CentreObservations, static, detector: DetectorSpec
     x0 : array_like of shape (6,), optional
         Start; default: the nominal travel along the source -> stage
         direction in {DF}, no rotation.
+    max_rms_px, max_rms_ratio : float
+        Quality gate, as in solve_static (noise.assess_fit).
+    view_sd_px : (float, float), optional
+        Shared per-projection shift sd (u, v) [px]; default: estimated from
+        the residuals (multi), or from a multi solve of ``obs_k`` (single).
 
     Returns
     -------
@@ -218,7 +239,8 @@ def solve_error_motion(obs_k: CentreObservations, static, detector: DetectorSpec
     pts = geom.centres_df_m[seen] - geom.centres_df_m[seen].mean(axis=0)
     sv = np.linalg.svd(pts, compute_uv=False)
     if sv[1] <= 1e-6 * sv[0]:
-        return _failed(obs, mode, start, srd_k, srd_1, "degenerate: the observed spheres are collinear")
+        return _failed(obs, mode, start, srd_k, srd_1, "degenerate: the observed spheres are collinear",
+                       outcome="degenerate")
 
     # blocked order (all u, then all v) with a lazy Jacobian; interleaved again for the result
     kern = MotionKernel(geom, obs, detector, terms, term_params)
@@ -234,50 +256,113 @@ def solve_error_motion(obs_k: CentreObservations, static, detector: DetectorSpec
             f = float(f_scale_px) if sigma is None else float(f_scale_px) / float(np.median(obs.sigma_px))
         res = levenberg_marquardt(fun, None, res.x, sigma=sigma, loss=loss, f_scale=f, max_iter=max_iter, stol=STOL)
         nfev, njev, nit = nfev + res.nfev, njev + res.njev, nit + res.n_iter
-    cov = covariance_from_jacobian(res.jac, res.residuals, res.weights, cond_limit=cond_limit, normal=res.normal)
+    if not (np.all(np.isfinite(res.x)) and np.all(np.isfinite(res.residuals))):
+        return _failed(obs, mode, start, srd_k, srd_1, f"the solve diverged: {res.message}", outcome="failed")
+    if view_sd_px is None and mode == "single" and obs_k.n_views > 1:
+        # the shift shared by one projection's observations is absorbed by the motion in one
+        # projection: take its size from the multi-projection solve of the same position
+        multi = solve_error_motion(obs_k, static, detector, srd_k, srd_1, mode="multi",
+                                   include_static_uncertainty=False, x0=res.x, terms=terms, term_params=term_params)
+        if multi.noise is not None:
+            view_sd_px = multi.noise.view_sd_px
+    q = obs.n_obs
+    r, jac = kern.evaluate(res.x)
+    jt = jac()
+    noise = estimate_noise(r, sigma, obs.view_index, 6, view_sd_px=view_sd_px)
+    w = 1.0 / axis_weights_sigma(sigma, q, noise) if loss == "linear" else res.weights
+    cov = covariance_from_jacobian(jt.T, r, w, cond_limit=cond_limit)
+    cov_cond = sandwich_covariance(jt, 1.0 / w, axis_weights_sigma(sigma, q, noise), obs.view_index, noise,
+                                   cov.normal_inverse)
     success, message = res.success, res.message
-    robust_px = 1.4826 * float(np.median(np.abs(res.residuals)))
+    outcome = "success" if success else "not_converged"
     if cov.rank_deficient:
-        success = False
+        success, outcome = False, "degenerate"
         d = cov.weakest_direction
         top = np.argsort(-np.abs(d))[:3]
         message = (f"degenerate: Jacobian condition {cov.condition:.3g} exceeds {cond_limit:.3g}; undetermined "
                    "combination ~ " + " ".join(f"{d[i]:+.2f}*{MOTION_PARAM_NAMES[i]}" for i in top))
-    elif success and robust_px > max_rms_px:
-        success = False
-        message = f"converged to a poor fit: robust residual scale {robust_px:.3g} px > {max_rms_px} px"
+    else:
+        ok, why = assess_fit(r, sigma, obs.view_index, obs.sphere_index, noise, max_rms_ratio=max_rms_ratio,
+                             max_rms_px=max_rms_px, robust=loss != "linear")
+        if ok and why:
+            message = f"{message}; {why}"
+        elif not ok:
+            success, outcome = False, "poor_fit"
+            message = why + f" [solver: {message}]"
 
-    cov_total = sens = None
+    cov_total = sens = centre_sens = None
     if include_static_uncertainty and static_res is not None and success:
-        sens = _static_sensitivity(res, cov, static_res, obs, detector)
-        cov_total = cov.covariance + sens @ static_res.covariance @ sens.T
+        sens = _static_sensitivity(res.x, jt.T, w, cov.normal_inverse, static_res, obs, detector)
+        s_noise = static_res.covariance if static_res.covariance_noise is None else static_res.covariance_noise
+        cov_total = cov_cond + sens @ s_noise @ sens.T
+        if static_res.centre_sensitivity is not None and static_res.centre_uncertainty_m is not None:
+            direct = _direct_centre_sensitivity(res.x, jt.T, w, cov.normal_inverse, kern, static_res, obs)
+            centre_sens = direct + sens @ static_res.centre_sensitivity
+            u2 = np.repeat(np.asarray(static_res.centre_uncertainty_m, dtype=float) ** 2, 3)
+            cov_total = cov_total + (centre_sens * u2) @ centre_sens.T
     return MotionResult(
-        x=res.x, names=MOTION_PARAM_NAMES, units=MOTION_PARAM_UNITS, covariance=cov.covariance,
-        covariance_total=cov_total, correlation=correlation_from_covariance(cov.covariance),
-        normal_inverse=cov.normal_inverse, variance_factor=cov.variance_factor,
+        x=res.x, names=MOTION_PARAM_NAMES, units=MOTION_PARAM_UNITS, covariance=cov_cond,
+        covariance_total=cov_total, correlation=correlation_from_covariance(cov_cond),
+        normal_inverse=cov.normal_inverse, variance_factor=noise.chi2_dof,
         residuals_px=res.residuals.reshape(2, -1).T.copy(), rms_px=float(np.sqrt(np.mean(res.residuals ** 2))),
         cost=res.cost, success=bool(success), status=res.status, message=message, nfev=nfev, njev=njev,
         n_iter=nit, n_obs=obs.n_obs, n_views=obs.n_views, mode=mode, condition=cov.condition, x0=start,
-        srd_reported_k_m=srd_k, srd_reported_1_m=srd_1, static_sensitivity=sens)
+        srd_reported_k_m=srd_k, srd_reported_1_m=srd_1, static_sensitivity=sens, centre_sensitivity=centre_sens,
+        outcome=outcome, noise=noise)
 
 
-def _static_sensitivity(res, cov, static_res: StaticResult, obs, detector):
+def _direct_centre_sensitivity(m, jac, weights, normal_inverse, kern: MotionKernel, static_res: StaticResult, obs):
+    """-(J_m^T W J_m)^-1 J_m^T W d r / d C_OF with the static geometry held: shape (6, 3N).
+
+    A sphere's centre enters position k as point = R_k + G Rot(r_1, alpha) (C_DF - R_1) with
+    C_DF = R_det^T (R_obj C_OF + P - D) (eqs 7, 10-11), so d r_q / d C_OF =
+    (d r_q / d point) G Rot(r_1, alpha_q) R_det^T R_obj, and d r / d point is the Jacobian's
+    dx_R, dy_R, dz_R columns.
+    """
+    from .ct_model import _angle_stage  # noqa: PLC0415
+    from .geometry import detector_rotation, object_rotation, rot_axis_angle  # noqa: PLC0415
+
+    w_static = static_res.x
+    n_sph = len(static_res.centres_of_m)
+    r_df_of = detector_rotation(*w_static[4:7]).T @ object_rotation(*w_static[10:13])
+    g = motion_rotation(m[3], m[4], m[5])
+    alpha, _ = _angle_stage(obs.alpha_rad, kern.tpar, kern.terms, obs, 0, 0)
+    views, inv = np.unique(alpha, return_inverse=True)
+    rots = rot_axis_angle(static_res.geometry.axis_df, views)           # (V, 3, 3)
+    chain = np.einsum("ij,vjk,kl->vil", g, rots, r_df_of)[inv]          # (Q, 3, 3) d point / d C_OF
+    q = obs.n_obs
+    w2 = np.asarray(weights, dtype=float) ** 2
+    b = np.zeros((6, n_sph, 3))
+    for a in range(2):
+        rows = slice(a * q, (a + 1) * q)
+        jp = jac[rows, 0:3]                                              # d r / d point (Q, 3)
+        dc = np.einsum("qi,qij->qj", jp, chain)                          # d r / d C_OF (Q, 3)
+        jw = jac[rows] * w2[rows, None]                                  # (Q, 6)
+        for c in range(3):
+            prod = jw * dc[:, c][:, None]
+            for j in range(6):
+                b[j, :, c] += np.bincount(obs.sphere_index, prod[:, j], n_sph)
+    return -normal_inverse @ b.reshape(6, 3 * n_sph)
+
+
+def _static_sensitivity(m, jac, weights, normal_inverse, static_res: StaticResult, obs, detector):
     """A = d m / d x_static at the optimum, shape (6, n_static)."""
     xs = static_res.x
     sd = static_res.std
     nfree = len(xs)
-    js = np.empty((len(res.residuals), nfree))
+    k0 = MotionKernel(static_res.geometry, obs, detector, static_res.terms, xs[13:])
+    r0 = k0.residuals_blocked(m)
+    js = np.empty((len(r0), nfree))
     # Forward differences with a step of 0.1 sd: over a tenth of a standard deviation the model
     # is linear: central differences (twice the cost) agreed to 1.5e-6 of the largest entry and
     # to 6 digits in the propagated standard deviations (position k = 19 of the default campaign).
-    r0 = res.residuals                                      # at xs and res.x, same order as res.jac
     for i in range(nfree):
         h = max(0.1 * sd[i], 1e-12)
         xp = xs.copy()
         xp[i] += h
         g = static_to_detector_frame(xp[:13], static_res.centres_of_m)
         k = MotionKernel(g, obs, detector, static_res.terms, xp[13:])
-        js[:, i] = (k.residuals_blocked(res.x) - r0) / h
-    w = res.weights
-    jm = res.jac * w[:, None]
-    return -cov.normal_inverse @ (jm.T @ (js * w[:, None]))
+        js[:, i] = (k.residuals_blocked(m) - r0) / h
+    w = np.asarray(weights, dtype=float)
+    jm = jac * w[:, None]
+    return -normal_inverse @ (jm.T @ (js * w[:, None]))

@@ -57,7 +57,9 @@ class LMResult:
         0.5 f^2 sum rho((r / (sigma f))^2) at x.
     nfev, njev, n_iter : int
     status : int
-        1 ftol (actual or predicted decrease), 2 xtol, 3 gtol, 4 stol, 0 max_iter, -1 non-finite start, -2 damping overflow.
+        1 ftol (actual or predicted decrease), 2 xtol, 3 gtol, 4 stol, 0 max_iter, -1 non-finite start,
+        -2 damping overflow, -3 stalled (the damping grew until the step vanished without a decrease:
+        not a minimum, whatever the step tolerance says).
     message : str
     success : bool
     normal : ndarray of shape (n, n) or None
@@ -205,6 +207,7 @@ def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=
             if within_stol(gn2, cost):
                 status, message = 4, f"remaining step below {stol:g} standard deviations"
                 break
+        rejected = 0
         while True:
             lhs = a + mu * np.diag(dscale ** 2)
             try:
@@ -213,7 +216,13 @@ def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=
             except np.linalg.LinAlgError:
                 step = -np.linalg.lstsq(lhs, g, rcond=None)[0]
             if np.linalg.norm(dscale * step) <= xtol * (np.linalg.norm(dscale * x) + xtol):
-                status, message = 2, "step tolerance reached"
+                if rejected:
+                    # the step only became that small because the damping grew after failed
+                    # trials: the model promises a decrease the function does not deliver here
+                    status, message = -3, (f"stalled: the damping grew through {rejected} rejected steps "
+                                           "until the step vanished, with no decrease (not a minimum)")
+                else:
+                    status, message = 2, "step tolerance reached"
                 break
             x_new = x + step
             r_new, jac_new = lazy(x_new)
@@ -225,10 +234,11 @@ def levenberg_marquardt(fun, fun_jac, x0, *, sigma=None, loss="linear", f_scale=
                 break
             mu *= nu
             nu *= 2.0
+            rejected += 1
             if mu > 1e30:
                 status, message = -2, "damping overflow: no decrease found"
                 break
-        if status in (2, -2):
+        if status in (2, -2, -3):
             break
         decrease = cost - cost_new
         x, r, cost, sw = x_new, r_new, cost_new, sw_new

@@ -21,8 +21,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .ct_model import StaticKernel, lm_function, param_names, param_units
-from .geometry import DetectorFrameGeometry, DetectorSpec, static_to_detector_frame
+from .geometry import DetectorFrameGeometry, DetectorSpec, object_rotation, static_to_detector_frame
 from .lm import LOSSES, STOL, correlation_from_covariance, covariance_from_jacobian, levenberg_marquardt
+from .noise import MAX_RMS_RATIO, NoiseModel, assess_fit, axis_weights_sigma, estimate_noise, sandwich_covariance
 from .observations import CentreObservations
 from .terms import check_terms
 
@@ -49,14 +50,17 @@ class StaticResult:
         Estimate: w (13, geometry.py order) then term parameters.
     names, units : tuple of str, length n
     covariance : ndarray of shape (n, n)
-        s^2 (J^T W J)^-1 with s^2 the residual variance factor (so it holds
-        whether or not ``sigma_px`` was known). NaN if the solve failed.
+        Total covariance: the observation noise as estimated from the data
+        (noise.py: per-axis scale of the reported sigma and a per-projection
+        shared shift, sandwich form) plus, when the reference object states
+        its centres' uncertainty, their propagation. NaN if the solve failed.
     correlation : ndarray of shape (n, n)
     normal_inverse : ndarray of shape (n, n)
         (J^T W J)^-1; with the true pixel sigma, ``sigma^2 * normal_inverse``
         is the Cramer-Rao bound (when ``sigma_px`` was given it already is).
     variance_factor : float
-        Reduced chi-square s^2 (px^2 when no sigma_px was given).
+        Reduced chi-square against the detector's reported sigma (px^2 when
+        no sigma_px was given): 1 when the data are as noisy as stated.
     residuals_px : ndarray of shape (Q, 2)
         modelled - observed (col, row) at the estimate.
     rms_px : float
@@ -81,6 +85,19 @@ class StaticResult:
         The reference centres the solution refers to.
     weights : ndarray of shape (2Q,)
         Final IRLS / whitening weights.
+    outcome : str
+        One word for the result, shared by every solver (noise.OUTCOMES):
+        "success", "not_converged", "degenerate", "insufficient_data",
+        "poor_fit" (converged, but the model does not explain the data;
+        ``message`` names the likely cause), "failed".
+    noise : NoiseModel or None
+        Observation noise estimated from the residuals (noise.py).
+    covariance_noise : ndarray of shape (n, n) or None
+        The part of ``covariance`` due to the observation noise.
+    centre_sensitivity : ndarray of shape (n, 3N) or None
+        d x / d (calibrated centres in {OF}), flattened sphere by sphere.
+    centre_uncertainty_m : ndarray of shape (N,) or None
+        Standard uncertainty of each calibrated centre (per coordinate) used.
     """
 
     x: np.ndarray
@@ -110,6 +127,11 @@ class StaticResult:
     terms: tuple = ()
     centres_of_m: np.ndarray = field(default=None, repr=False)
     weights: np.ndarray = field(default=None, repr=False)
+    outcome: str = "success"
+    noise: NoiseModel | None = None
+    covariance_noise: np.ndarray | None = field(default=None, repr=False)
+    centre_sensitivity: np.ndarray | None = field(default=None, repr=False)
+    centre_uncertainty_m: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def w(self) -> np.ndarray:
@@ -146,7 +168,9 @@ class StaticResult:
             "success": self.success, "status": self.status, "message": self.message,
             "nfev": self.nfev, "njev": self.njev, "n_iter": self.n_iter, "n_obs": self.n_obs,
             "n_views": self.n_views, "n_spheres": self.n_spheres, "condition": self.condition,
-            "loss": self.loss, "f_scale_px": self.f_scale_px,
+            "loss": self.loss, "f_scale_px": self.f_scale_px, "outcome": self.outcome,
+            "noise": None if self.noise is None else self.noise.to_dict(),
+            "std_noise_only": None if self.covariance_noise is None else np.sqrt(np.maximum(np.diag(self.covariance_noise), 0)),
             "terms": [t.name for t in self.terms],
             "strong_correlations": [list(c) for c in self.strong_correlations(0.9)],
             "geometry_df": None if g is None else {
@@ -175,19 +199,20 @@ def _check_inputs(obs, centres_of_m, detector, srd_m, sdd_m):
     return c, float(srd_m), float(sdd_m)
 
 
-def _degeneracy(obs, centres, n_params, min_obs_per_param=2):
-    """Reasons the static problem cannot be solved, or None."""
+def _degeneracy(obs, centres, n_params):
+    """(reason, outcome) when the static problem cannot be solved, or None."""
     seen = np.flatnonzero(np.bincount(obs.sphere_index, minlength=len(centres)))
     if obs.n_obs * 2 < n_params + 1:
-        return f"too few observations: {obs.n_obs} centres (2 coordinates each) for {n_params} parameters"
+        return (f"too few observations: {obs.n_obs} centres (2 coordinates each) for {n_params} parameters",
+                "insufficient_data")
     if seen.size < 4:
-        return f"too few spheres: {seen.size} distinct spheres observed, need at least 4"
+        return f"too few spheres: {seen.size} distinct spheres observed, need at least 4", "insufficient_data"
     if obs.n_views < 3:
-        return f"too few projections: {obs.n_views}, need at least 3 for the static solve"
+        return f"too few projections: {obs.n_views}, need at least 3 for the static solve", "insufficient_data"
     p = centres[seen] - centres[seen].mean(axis=0)
     sv = np.linalg.svd(p, compute_uv=False)
     if sv[1] <= 1e-6 * sv[0]:
-        return "degenerate reference object: the observed spheres are collinear"
+        return "degenerate reference object: the observed spheres are collinear", "degenerate"
     return None
 
 
@@ -266,6 +291,89 @@ def initial_guess(obs: CentreObservations, centres_of_m, detector: DetectorSpec,
     return x0, int(ok.sum())
 
 
+def _centre_sensitivity(jac, weights, x, obs: CentreObservations, normal_inverse, n_spheres: int) -> np.ndarray:
+    """d x / d (calibrated centres in {OF}) at the optimum, shape (n, 3 N), sphere by sphere.
+
+    Implicit function theorem: dx = -(J^T W J)^-1 J^T W (d r / d C) dC. A centre enters the
+    model only through its own observations, as C_SRF = R_obj C_OF + P (eq. 1), so
+    d r / d C_i = (d r / d P) R_obj on the rows of sphere i: the Jacobian's x_P, y_P, z_P columns.
+    """
+    w2 = np.asarray(weights, dtype=float) ** 2            # jac: (2Q, n) blocked
+    rows_sphere = np.concatenate([obs.sphere_index, obs.sphere_index])
+    jw = jac * w2[:, None]
+    n = jac.shape[1]
+    b = np.zeros((n, n_spheres, 3))
+    for c in range(3):
+        prod = jw * jac[:, 7 + c][:, None]
+        for j in range(n):
+            b[j, :, c] = np.bincount(rows_sphere, prod[:, j], n_spheres)
+    r_obj = object_rotation(x[10], x[11], x[12])
+    b = b @ r_obj                                        # (n, N, 3): d r / d C_OF = (d r / d P) R_obj
+    return -normal_inverse @ b.reshape(n, 3 * n_spheres)
+
+
+def static_uncertainty(x, kern: StaticKernel, obs: CentreObservations, sigma, n_spheres: int,
+                       centre_uncertainty_m=None, cond_limit: float = 1e10, weights=None):
+    """Uncertainty of a static estimate from the data it rests on (the same numbers whoever asks).
+
+    At ``x``: the noise model from the residuals (noise.py), weights = the reported sigma
+    rescaled per axis (or the given final IRLS ``weights`` of a robust fit), the sandwich
+    covariance of the observation noise, and, with ``centre_uncertainty_m``, the sensitivity to
+    the calibrated centres and their contribution.
+
+    Returns
+    -------
+    (CovarianceInfo, NoiseModel, cov_noise (n, n), centre_sensitivity (n, 3N) or None, covariance (n, n))
+    """
+    r, jac = kern.evaluate(x)
+    jt = jac()                                            # (n, 2Q)
+    q = obs.n_obs
+    noise = estimate_noise(r, sigma, obs.view_index, kern.n)
+    w = 1.0 / axis_weights_sigma(sigma, q, noise) if weights is None else np.asarray(weights, dtype=float)
+    cov = covariance_from_jacobian(jt.T, r, w, cond_limit=cond_limit)
+    cov_noise = sandwich_covariance(jt, 1.0 / w, axis_weights_sigma(sigma, q, noise), obs.view_index, noise,
+                                    cov.normal_inverse)
+    if centre_uncertainty_m is None:
+        return cov, noise, cov_noise, None, cov_noise
+    u_c = np.broadcast_to(np.asarray(centre_uncertainty_m, dtype=float), (n_spheres,))
+    if u_c.shape != (n_spheres,) or not np.all(np.isfinite(u_c)) or np.any(u_c < 0):
+        raise ValueError(f"centre_uncertainty_m must be >= 0, scalar or shape ({n_spheres},)")
+    sens = _centre_sensitivity(jt.T, w, x, obs, cov.normal_inverse, n_spheres)
+    return cov, noise, cov_noise, sens, cov_noise + (sens * np.repeat(u_c ** 2, 3)) @ sens.T
+
+
+#: hypotheses tried when a fit fails: (description, what to check, transform of (obs, detector))
+def _orientation_variants(obs: CentreObservations, detector: DetectorSpec):
+    from dataclasses import replace  # noqa: PLC0415
+
+    uv = obs.uv_px
+    yield ("the image columns mirrored", "check the image orientation (column direction, +X)",
+           replace(obs, uv_px=np.column_stack([detector.cols - 1 - uv[:, 0], uv[:, 1]])))
+    yield ("the image rows mirrored", "check the image orientation (row direction, row 0 = top)",
+           replace(obs, uv_px=np.column_stack([uv[:, 0], detector.rows - 1 - uv[:, 1]])))
+    yield ("the rotation reversed", "check the rotation direction (+alpha about +Y, right-hand rule)",
+           replace(obs, alpha_rad=-obs.alpha_rad))
+
+
+def _orientation_hint(obs, centres, detector, srd, sdd, terms, noise, max_rms_ratio) -> str | None:
+    """When a fit fails: does the data fit a mirrored image or a reversed rotation instead?"""
+    best = None
+    for what, check, variant in _orientation_variants(obs, detector):
+        try:
+            r = solve_static(variant, centres, detector, srd, sdd, terms=terms, max_rms_ratio=max_rms_ratio,
+                             _orientation_check=False)
+        except ValueError:
+            continue
+        if r.noise is not None and r.noise.chi2_dof < 0.25 * noise.chi2_dof and (best is None or
+                                                                             r.noise.chi2_dof < best[0]):
+            best = (r.noise.chi2_dof, what, check, r.success)
+    if best is None:
+        return None
+    chi2, what, check, ok = best
+    return (f"{check}: the data fit {what} {'well' if ok else 'much better'} (residuals "
+            f"{np.sqrt(chi2):.3g} instead of {np.sqrt(noise.chi2_dof):.3g} times the stated uncertainty)")
+
+
 COARSE_MIN_VIEWS = 90     # coarse-to-fine only from this many projections on
 COARSE_VIEWS = 20         # projections in the coarse subset (evenly spaced in acquisition order)
 
@@ -284,7 +392,7 @@ def _coarse_views(obs: CentreObservations):
     return obs.select(keep[obs.view_index])
 
 
-def _failed(obs, centres, terms, x0, message, status=-10):
+def _failed(obs, centres, terms, x0, message, status=-10, outcome="insufficient_data"):
     n = x0.size
     nan = np.full((n, n), np.nan)
     return StaticResult(
@@ -293,12 +401,14 @@ def _failed(obs, centres, terms, x0, message, status=-10):
         rms_px=np.nan, cost=np.nan, success=False, status=status, message=message, nfev=0, njev=0,
         n_iter=0, n_obs=obs.n_obs, n_views=obs.n_views, n_spheres=obs.n_spheres_seen, condition=np.inf,
         geometry=None, x0=x0, loss="linear", f_scale_px=None, terms=tuple(terms), centres_of_m=centres,
-        weights=None)
+        weights=None, outcome=outcome)
 
 
 def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, srd_reported_m: float,
                  sdd_reported_m: float, *, terms=(), loss: str = "linear", f_scale_px: float | None = None,
-                 x0=None, max_iter: int = 100, max_rms_px: float = 2.0, cond_limit: float = 1e10) -> StaticResult:
+                 x0=None, max_iter: int = 100, max_rms_px: float = 2.0, cond_limit: float = 1e10,
+                 max_rms_ratio: float = MAX_RMS_RATIO, centre_uncertainty_m=None,
+                 _orientation_check: bool = True) -> StaticResult:
     """Solve the static geometry at stage position k = 1 (section 3.1, eq. 3).
 
     Parameters
@@ -327,7 +437,16 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
     max_iter : int
     max_rms_px : float
         A converged fit whose robust residual scale exceeds this [px] is
-        reported as a failure (wrong local minimum or wrong identification).
+        reported as a poor fit (wrong local minimum or wrong identification).
+    max_rms_ratio : float
+        A converged fit whose residual RMS exceeds this many times the
+        detector's reported sigma is a poor fit (noise.assess_fit also
+        refuses gross errors: wrong identities); the message names the
+        likely cause.
+    centre_uncertainty_m : float or array_like of shape (N,), optional
+        Standard uncertainty of each calibrated centre coordinate [m]
+        (reference_object.yaml ``center_uncertainty``); propagated into the
+        covariance.
     cond_limit : float
         Condition number above which the problem is declared degenerate.
 
@@ -353,7 +472,7 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
         n_used = None
     reason = _degeneracy(obs, centres, n_par)
     if reason is not None:
-        return _failed(obs, centres, terms, start, reason)
+        return _failed(obs, centres, terms, start, *reason[:1], outcome=reason[1])
     if n_used is not None and n_used < 3:
         return _failed(obs, centres, terms, start,
                        f"cannot initialise: only {n_used} spheres have a usable trajectory (>= 3 views)")
@@ -397,34 +516,54 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
         res = levenberg_marquardt(fun, None, res.x, sigma=sigma, loss=loss, f_scale=f, max_iter=max_iter, stol=STOL)
         nfev, njev, nit = nfev + res.nfev, njev + res.njev, nit + res.n_iter
 
-    cov = covariance_from_jacobian(res.jac, res.residuals, res.weights, cond_limit=cond_limit,
-                                   normal=res.normal)
-    r2 = res.residuals.reshape(2, -1).T.copy()            # blocked -> (Q, 2)
+    q = obs.n_obs
+    # Noise from the data (noise.py): per-axis scale of the reported sigma and a per-projection
+    # shared shift. The fit is redone once with the sigma rescaled per axis (so columns and rows
+    # get their measured relative weights) and the covariance is the sandwich under that model.
+    noise = estimate_noise(res.residuals, sigma, obs.view_index, n_par)
+    if loss == "linear" and res.success and np.all(np.isfinite(res.x)):
+        sigma_fit = axis_weights_sigma(sigma, q, noise)
+        res2 = levenberg_marquardt(fun, None, res.x, sigma=sigma_fit, max_iter=max_iter, stol=STOL)
+        nfev, njev, nit = nfev + res2.nfev, njev + res2.njev, nit + res2.n_iter
+        if res2.success:
+            res = res2
+    if not (np.all(np.isfinite(res.x)) and np.all(np.isfinite(res.residuals))):
+        return _failed(obs, centres, terms, start, f"the solve diverged: {res.message}", status=res.status,
+                       outcome="failed")
+    unc = static_uncertainty(res.x, kern, obs, sigma, len(centres), centre_uncertainty_m, cond_limit,
+                             weights=None if loss == "linear" else res.weights)
+    cov, noise, cov_noise, centre_sens, covariance = unc
+    u_c = None if centre_sens is None else np.broadcast_to(np.asarray(centre_uncertainty_m, float), (len(centres),))
+    r2 = res.residuals.reshape(2, -1).T.copy()
     rms = float(np.sqrt(np.mean(res.residuals ** 2)))
-    # a pass/fail check against max_rms_px, so a strided subset of >= ~4000 residuals is plenty
-    stride = max(1, res.residuals.size // 4096)
-    robust_px = 1.4826 * float(np.median(np.abs(res.residuals[::stride])))
     success, message = res.success, res.message
     names = param_names(terms)
+    outcome = "success" if success else ("failed" if res.status == -1 else "not_converged")
     if cov.rank_deficient:
-        success = False
+        success, outcome = False, "degenerate"
         d = cov.weakest_direction
         top = np.argsort(-np.abs(d))[:3]
         combo = " ".join(f"{d[i]:+.2f}*{names[i]}" for i in top)
         message = (f"degenerate geometry: Jacobian condition {cov.condition:.3g} exceeds {cond_limit:.3g}; "
                    f"undetermined combination ~ {combo}")
-    elif success and robust_px > max_rms_px:
-        success = False
-        message = (f"converged to a poor fit: robust residual scale {robust_px:.3g} px > {max_rms_px} px "
-                   "(local minimum, wrong identification or wrong nominal inputs)")
-    geom = None
-    if np.all(np.isfinite(res.x)):
-        geom = static_to_detector_frame(res.x[:13], centres)
+    # Does the model explain the data? A fit that does not is a poor fit whatever else the solver
+    # says (a wrong start can end degenerate or at the iteration limit too), and the message says why.
+    ok, why = assess_fit(res.residuals, sigma, obs.view_index, obs.sphere_index, noise,
+                         max_rms_ratio=max_rms_ratio, max_rms_px=max_rms_px, robust=loss != "linear")
+    if ok and why and success:
+        message = f"{message}; {why}"
+    elif not ok:
+        hint = (_orientation_hint(obs, centres, detector, srd, sdd, terms, noise, max_rms_ratio)
+                if _orientation_check else None)
+        success, outcome = False, "poor_fit"
+        message = why + ("; " + hint if hint else "") + f" [solver: {message}]"
+    geom = static_to_detector_frame(res.x[:13], centres)
     return StaticResult(
-        x=res.x, names=names, units=param_units(terms), covariance=cov.covariance,
-        correlation=correlation_from_covariance(cov.covariance), normal_inverse=cov.normal_inverse,
-        variance_factor=cov.variance_factor, residuals_px=r2, rms_px=rms, cost=res.cost,
+        x=res.x, names=names, units=param_units(terms), covariance=covariance,
+        correlation=correlation_from_covariance(covariance), normal_inverse=cov.normal_inverse,
+        variance_factor=noise.chi2_dof, residuals_px=r2, rms_px=rms, cost=res.cost,
         success=bool(success), status=res.status, message=message, nfev=nfev, njev=njev, n_iter=nit,
         n_obs=obs.n_obs, n_views=obs.n_views, n_spheres=obs.n_spheres_seen, condition=cov.condition,
         geometry=geom, x0=start, loss=loss, f_scale_px=f_used, terms=terms, centres_of_m=centres,
-        weights=kern.interleave(res.weights))
+        weights=kern.interleave(res.weights), outcome=outcome, noise=noise, covariance_noise=cov_noise,
+        centre_sensitivity=centre_sens, centre_uncertainty_m=u_c)

@@ -64,12 +64,21 @@ class CtErrorMotion(Node):
             self.get_logger().error(f"static geometry is not usable (status {code}: {msg.static_estimate.status.message}); "
                                     "error motions wait for a usable one")
             return
-        self.static = static_result_from_estimate(w, cov, self.ref.centres_of_m,
-                                                  rms_px=msg.static_estimate.status.rms_residual)
+        self.static_msg = (w, cov, float(msg.static_estimate.status.rms_residual))
+        self.static = self._rebuild_static()
         self.results = {m: {} for m in MODES}
         self.solved_frames = {m: {} for m in MODES}
         self.get_logger().info("static geometry received")
         self._solve_complete(final=False)
+
+    def _rebuild_static(self):
+        """The published static estimate, its uncertainty rebuilt from the first position's
+        observations as the offline solve does (centre uncertainty through both paths)."""
+        w, cov, rms = self.static_msg
+        obs = self.acc.positions[0].observations() if self.acc.positions else None
+        return static_result_from_estimate(w, cov, self.ref.centres_of_m, rms_px=rms, obs=obs,
+                                           n_obs=0 if obs is None else obs.n_obs, detector=self.instrument.detector,
+                                           centre_uncertainty_m=self.ref.center_uncertainty_m)
 
     def _on_obs(self, msg):
         k = self.intake.add(msg)
@@ -84,6 +93,8 @@ class CtErrorMotion(Node):
         """Solve every complete, not yet solved position (the last one only when final)."""
         if self.static is None or len(self.acc.positions) < 2:
             return
+        if self.static.n_obs != self.acc.positions[0].n_obs:
+            self.static = self._rebuild_static()
         last = len(self.acc.positions) - (0 if final else 1)
         changed = False
         for k in range(1, last):

@@ -63,7 +63,8 @@ class CtGeometrySolver(Node):
             return self.result, "no new observations since the last solve"
         t0 = time.perf_counter()
         res = solve_campaign_static(self.acc, self.ref.centres_of_m, self.instrument.detector,
-                                    self.instrument.sdd_reported_m, loss=str(self.p["loss"]))
+                                    self.instrument.sdd_reported_m, loss=str(self.p["loss"]),
+                                    centre_uncertainty_m=self.ref.center_uncertainty_m)
         dt = time.perf_counter() - t0
         self.result, self.solved_n_frames = res, p0.n_frames
         msg = geometry_msg(res, p0.srd_reported_m, self.instrument.sdd_reported_m, self.instrument.detector,
