@@ -68,8 +68,9 @@ def test_df_model_at_k1_equals_srf_model(campaign, centres, detector):
 
 
 def test_kernels_blocked_layout_matches_public_functions(campaign, centres, detector):
-    """The solvers' fast path (blocked residuals, lazy (n, 2Q) Jacobian) is the same model as
-    the interleaved public functions: only the row order differs (exact up to rounding)."""
+    """The solvers' fast path (blocked f = modelled - observed, lazy (n, 2Q) Jacobian) is the same
+    model as the interleaved public functions (observed - modelled): only the row order and the
+    sign differ (exact up to rounding)."""
     from ct_calib_nodes.core.ct_model import StaticKernel
     alpha = np.linspace(0, 2 * np.pi, 24, endpoint=False)
     terms = (EncoderEccentricity(), RadialDistortion())
@@ -78,14 +79,14 @@ def test_kernels_blocked_layout_matches_public_functions(campaign, centres, dete
     r_i, j_i = static_residuals_jac(x, obs, centres, detector, terms)
     r_b, jac = StaticKernel(obs, centres, detector, terms).evaluate(x)
     q = obs.n_obs
-    assert np.max(np.abs(r_b.reshape(2, q).T.ravel() - r_i)) < 1e-12
+    assert np.max(np.abs(r_b.reshape(2, q).T.ravel() + r_i)) < 1e-12
     k = jac()
     assert k.shape == (x.size, 2 * q) and k.flags.c_contiguous
-    assert np.max(np.abs(k.reshape(-1, 2, q).transpose(2, 1, 0).reshape(2 * q, -1) - j_i)) < 1e-12 * np.max(np.abs(j_i))
+    assert np.max(np.abs(k.reshape(-1, 2, q).transpose(2, 1, 0).reshape(2 * q, -1) + j_i)) < 1e-12 * np.max(np.abs(j_i))
     geom = G.static_to_detector_frame(campaign.static_w, centres)
     kern = MotionKernel(geom, obs, detector, (RadialDistortion(),), [0.03])
     m = campaign.motions[12]
     rm_i, jm_i = kern.residuals_jac(m)
     rm_b, jm = kern.evaluate(m)
-    assert np.max(np.abs(rm_b.reshape(2, q).T.ravel() - rm_i)) < 1e-12
-    assert np.max(np.abs(jm().reshape(6, 2, q).transpose(2, 1, 0).reshape(2 * q, 6) - jm_i)) < 1e-12 * np.max(np.abs(jm_i))
+    assert np.max(np.abs(rm_b.reshape(2, q).T.ravel() + rm_i)) < 1e-12
+    assert np.max(np.abs(jm().reshape(6, 2, q).transpose(2, 1, 0).reshape(2 * q, 6) + jm_i)) < 1e-12 * np.max(np.abs(jm_i))

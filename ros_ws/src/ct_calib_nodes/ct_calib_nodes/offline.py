@@ -63,6 +63,7 @@ class OfflineResult:
     read_report: ReadReport | None = None
     counts: dict = field(default_factory=dict)
     problems: list = field(default_factory=list)
+    notes: list = field(default_factory=list)      # what was applied to the inputs (thermal expansion, ...)
 
 
 def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: str = "linear",
@@ -162,7 +163,7 @@ def _result_dict(res, instrument, ref, recording, files) -> dict:
 
     d = {"recording": str(recording), "files": {k: str(v) for k, v in files.items()},
          "units": "SI (m, rad); covariance in products of the parameter units",
-         "counts": res.counts, "problems": res.problems,
+         "counts": res.counts, "problems": res.problems, "notes": res.notes,
          "stage_positions": [{"index": k, "srd_reported_m": p.srd_reported_m, "frames": p.n_frames,
                               "observations": p.n_obs, "rejected_detections": p.n_rejected}
                              for k, p in enumerate(res.acc.positions)],
@@ -274,14 +275,16 @@ def main(argv=None) -> int:
         ref_path, how_r = _find_file(args.reference_object, rec, "reference_object.yaml",
                                      ct_files.default_reference_object_path)
         instrument = ct_files.load_instrument(inst_path)
-        ref = ct_files.load_reference_object(ref_path)
+        ref, thermal_note = ct_files.reference_at_scan(ct_files.load_reference_object(ref_path), instrument)
     except ct_files.CtFileError as exc:
         print(f"ct_offline_solve: {exc}", file=sys.stderr)
         return 2
     print(f"[offline] instrument file {inst_path} ({how_i}); reference object {ref_path} ({how_r})")
+    print(f"[offline] {thermal_note}")
     out_dir = pathlib.Path(args.out) if args.out else rec.parent / f"{rec.stem}_calibration"
     res = solve_recording(rec, instrument, ref, init_frames=args.init_frames, loss=args.loss,
                           progress=lambda m: print(f"[offline] {m}", flush=True))
+    res.notes.append(thermal_note)
     for p in res.problems[:20]:
         print(f"[offline] problem: {p}")
     if len(res.problems) > 20:

@@ -8,9 +8,12 @@ tests and later analyses:
 * :func:`motion_residuals` -- stage position k in {DF} (eqs 8-11, App. B),
   parameters ``m (6)`` on top of a fixed :class:`DetectorFrameGeometry`.
 
-Residuals are ``modelled - observed`` in pixels, interleaved per observation
-as in eq. 3: ``[u_1, v_1, u_2, v_2, ...]`` (shape (2Q,)); u is the column,
-v the row coordinate.
+Sign: every residual this project returns or reports is ``observed -
+modelled`` in pixels, interleaved per observation ``[u_1, v_1, u_2, v_2, ...]``
+(shape (2Q,)); u is the column, v the row coordinate. Only the kernels'
+blocked ``evaluate`` / ``residuals`` / ``residuals_blocked`` return the paper's
+eq. 3 vector f = modelled - observed, which the solvers minimise (the sign of
+f does not change the least-squares problem).
 
 The values reproduce geometry.forward_srf / forward_df exactly (tested); the
 Jacobians are chain-rule derivatives of the same expressions (tested
@@ -236,7 +239,7 @@ class StaticKernel:
         Returns
         -------
         r : ndarray of shape (2Q,)
-            modelled - observed [px], blocked.
+            f = modelled - observed [px] (eq. 3), blocked.
         jac : callable
             ``jac()`` returns K, shape (n, 2Q): d r / d x (transposed, blocked).
         """
@@ -245,7 +248,7 @@ class StaticKernel:
         return st["r"], (lambda: self._jacobian(st))
 
     def residuals(self, x):
-        """modelled - observed, blocked (2Q,) [px]."""
+        """f = modelled - observed (eq. 3), blocked (2Q,) [px]."""
         return self._forward(_check_x(x, self.terms))["r"]
 
     def _forward(self, x):
@@ -426,18 +429,18 @@ def static_predict(x, obs: CentreObservations, centres_of_m, detector: DetectorS
 
 
 def static_residuals(x, obs: CentreObservations, centres_of_m, detector: DetectorSpec, terms=()):
-    """THE residual function of the static model (eq. 3): modelled - observed.
+    """THE residual function of the static model: observed - modelled.
 
     Returns
     -------
     ndarray of shape (2Q,) [px], interleaved (u_1, v_1, u_2, v_2, ...).
     """
     kern = StaticKernel(obs, centres_of_m, detector, terms)
-    return kern.interleave(kern.residuals(x))
+    return -kern.interleave(kern.residuals(x))
 
 
 def static_residuals_jac(x, obs: CentreObservations, centres_of_m, detector: DetectorSpec, terms=()):
-    """Residuals (2Q,) [px] and their analytic Jacobian (2Q, 13 + p), interleaved.
+    """Residuals observed - modelled (2Q,) [px] and their analytic Jacobian (2Q, 13 + p), interleaved.
 
     The Jacobian is a Fortran-ordered view; ``J.T @ J`` is then a fast BLAS product.
     """
@@ -446,9 +449,9 @@ def static_residuals_jac(x, obs: CentreObservations, centres_of_m, detector: Det
     k = jac()
     q = kern.q
     jt = np.empty((kern.n, q, 2))
-    jt[:, :, 0] = k[:, :q]
-    jt[:, :, 1] = k[:, q:]
-    return kern.interleave(r), jt.reshape(kern.n, 2 * q).T
+    jt[:, :, 0] = -k[:, :q]
+    jt[:, :, 1] = -k[:, q:]
+    return -kern.interleave(r), jt.reshape(kern.n, 2 * q).T
 
 
 # --------------------------------------------------------------------------- error-motion model
@@ -524,7 +527,7 @@ class MotionKernel:
         Returns
         -------
         r : ndarray of shape (2Q,)
-            modelled - observed ``[u_1 .. u_Q, v_1 .. v_Q]`` [px].
+            f = modelled - observed ``[u_1 .. u_Q, v_1 .. v_Q]`` [px] (eq. 3).
         jac : callable
             ``jac()`` returns K, shape (6, 2Q): d r / d m (transposed, blocked).
         """
@@ -532,7 +535,7 @@ class MotionKernel:
         return st["r"], (lambda: self._jacobian(st))
 
     def residuals_blocked(self, m):
-        """modelled - observed, blocked (2Q,) [px]."""
+        """f = modelled - observed (eq. 3), blocked (2Q,) [px]."""
         return self._forward(self._check_m(m))["r"]
 
     def _forward(self, m):
@@ -616,14 +619,14 @@ class MotionKernel:
         return uv, jac().reshape(6, 2, self.q).transpose(2, 1, 0).copy()
 
     def residuals(self, m):
-        """modelled - observed, interleaved (2Q,) [px]."""
-        return self.residuals_blocked(m).reshape(2, -1).T.ravel()
+        """observed - modelled, interleaved (2Q,) [px]."""
+        return -self.residuals_blocked(m).reshape(2, -1).T.ravel()
 
     def residuals_jac(self, m):
-        """Residuals (2Q,) and Jacobian (2Q, 6), interleaved."""
+        """Residuals observed - modelled (2Q,) and their Jacobian (2Q, 6), interleaved."""
         r, jac = self.evaluate(m)
         q = self.q
-        return r.reshape(2, q).T.ravel(), jac().reshape(6, 2, q).transpose(2, 1, 0).reshape(2 * q, 6)
+        return -r.reshape(2, q).T.ravel(), -jac().reshape(6, 2, q).transpose(2, 1, 0).reshape(2 * q, 6)
 
 
 def _image_stage_fixed(xy, jac, tpar, terms, obs):
@@ -639,7 +642,7 @@ def _image_stage_fixed(xy, jac, tpar, terms, obs):
 
 def motion_residuals(m, obs: CentreObservations, geom: DetectorFrameGeometry, detector: DetectorSpec,
                      terms=(), term_params=()):
-    """THE residual function of the error-motion model (eqs 8-11): modelled - observed.
+    """THE residual function of the error-motion model (eqs 8-11): observed - modelled.
 
     Parameters
     ----------

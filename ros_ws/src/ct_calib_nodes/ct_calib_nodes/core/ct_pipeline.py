@@ -269,7 +269,7 @@ def campaign_residuals(acc: CampaignAccumulator, static_x, centres_of_m, detecto
             r = static_residuals(x, obs, centres, detector, terms)
         else:
             r = motion_residuals(np.asarray(motions[k], dtype=float), obs, geom, detector, terms, x[13:])
-        parts.append((-r.reshape(-1, 2), obs.view_index, obs.sphere_index, np.full(obs.n_obs, k)))
+        parts.append((r.reshape(-1, 2), obs.view_index, obs.sphere_index, np.full(obs.n_obs, k)))
     if not parts:
         return None
     return ReprojectionResiduals(*(np.concatenate(p) for p in zip(*parts)), label=label)

@@ -53,15 +53,18 @@ class MotionResult:
         dx_R, dy_R, dz_R [m], gamma_X, gamma_Y, gamma_Z [rad], in {DF}.
     names, units : tuple of str
     covariance : ndarray of shape (6, 6)
-        Conditional on the static geometry: s^2 (J^T W J)^-1.
+        Conditional on the static geometry: the observation noise of this
+        position (noise.py model, sandwich form).
     covariance_total : ndarray of shape (6, 6) or None
-        Including the propagated static-geometry covariance (None when the
-        static uncertainty was not available or not requested).
+        Including the propagated static-geometry noise and, when known, the
+        calibrated centres' uncertainty (None when the static uncertainty was
+        not available or not requested).
     correlation : ndarray of shape (6, 6)
         Of ``covariance``.
     normal_inverse : ndarray of shape (6, 6)
     variance_factor : float
     residuals_px : ndarray of shape (Q, 2)
+        observed - modelled (col, row) [px].
     rms_px, cost : float
     success : bool
     status : int
@@ -304,7 +307,7 @@ def solve_error_motion(obs_k: CentreObservations, static, detector: DetectorSpec
         x=res.x, names=MOTION_PARAM_NAMES, units=MOTION_PARAM_UNITS, covariance=cov_cond,
         covariance_total=cov_total, correlation=correlation_from_covariance(cov_cond),
         normal_inverse=cov.normal_inverse, variance_factor=noise.chi2_dof,
-        residuals_px=res.residuals.reshape(2, -1).T.copy(), rms_px=float(np.sqrt(np.mean(res.residuals ** 2))),
+        residuals_px=-res.residuals.reshape(2, -1).T, rms_px=float(np.sqrt(np.mean(res.residuals ** 2))),
         cost=res.cost, success=bool(success), status=res.status, message=message, nfev=nfev, njev=njev,
         n_iter=nit, n_obs=obs.n_obs, n_views=obs.n_views, mode=mode, condition=cov.condition, x0=start,
         srd_reported_k_m=srd_k, srd_reported_1_m=srd_1, static_sensitivity=sens, centre_sensitivity=centre_sens,

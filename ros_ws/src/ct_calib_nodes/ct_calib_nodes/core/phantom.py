@@ -93,6 +93,10 @@ class ReferenceObject:
         Standard uncertainty of each calibrated centre [m].
     temperature_K : float or None
         Temperature at calibration [K].
+    thermal_expansion_per_K : float or None
+        Linear expansion coefficient of the object's frame [1/K] (optional
+        ``thermal_expansion`` in the YAML file): the centres scale by
+        ``1 + alpha (T - temperature_K)`` about their centroid.
     tube : CarbonTube or None
         The carrier cylinder, rendered as a faint absorber if not None. It is
         not part of the YAML contract (a real object's file does not carry it).
@@ -106,6 +110,7 @@ class ReferenceObject:
     center_uncertainty_m: np.ndarray | None = None
     temperature_K: float | None = None
     tube: CarbonTube | None = field(default=None)
+    thermal_expansion_per_K: float | None = None
 
     def __post_init__(self):
         ids = np.asarray(self.ids)
@@ -141,6 +146,9 @@ class ReferenceObject:
         t = self.temperature_K
         if t is not None and not (np.isfinite(t) and t > 0):
             raise ValueError(f"temperature_K must be positive, got {t}")
+        a = self.thermal_expansion_per_K
+        if a is not None and not (np.isfinite(a) and abs(a) < 1e-3):
+            raise ValueError(f"thermal_expansion_per_K must be finite and |alpha| < 1e-3 /K, got {a}")
         if self.tube is not None and not isinstance(self.tube, CarbonTube):
             raise ValueError("tube must be a CarbonTube or None")
         ids.setflags(write=False)
@@ -153,6 +161,32 @@ class ReferenceObject:
     @property
     def n_spheres(self) -> int:
         return int(self.ids.size)
+
+    def at_temperature(self, temperature_K):
+        """The object at another temperature: (ReferenceObject, note saying what was done).
+
+        The centres scale by ``1 + alpha (T - T_cal)`` about their centroid (a uniform expansion;
+        the point it is taken about only moves the pose, which the solvers estimate). Without a
+        temperature, a calibration temperature or an expansion coefficient nothing is changed
+        and the note says which is missing.
+        """
+        from dataclasses import replace  # noqa: PLC0415
+
+        if temperature_K is None:
+            return self, "thermal expansion not applied: the instrument file gives no object temperature"
+        missing = [k for k, v in (("temperature", self.temperature_K),
+                                  ("thermal_expansion", self.thermal_expansion_per_K)) if v is None]
+        if missing:
+            return self, (f"thermal expansion NOT applied although the object is at {float(temperature_K):.2f} K: "
+                          f"the reference object file lacks {' and '.join(missing)}")
+        dt = float(temperature_K) - self.temperature_K
+        scale = 1.0 + self.thermal_expansion_per_K * dt
+        c = self.centres_of_m
+        centroid = c.mean(axis=0)
+        out = replace(self, centres_of_m=centroid + scale * (c - centroid), temperature_K=float(temperature_K))
+        return out, (f"thermal expansion applied: {dt:+.2f} K from the calibration temperature "
+                     f"{self.temperature_K:.2f} K, alpha {self.thermal_expansion_per_K:.3g} /K, "
+                     f"centres scaled by {scale - 1.0:+.3g}")
 
     @property
     def radii_m(self) -> np.ndarray:
@@ -179,6 +213,8 @@ class ReferenceObject:
         }
         if self.temperature_K is not None:
             out["temperature"] = float(self.temperature_K)
+        if self.thermal_expansion_per_K is not None:
+            out["thermal_expansion"] = float(self.thermal_expansion_per_K)
         out["spheres"] = spheres
         return out
 

@@ -62,7 +62,7 @@ class StaticResult:
         Reduced chi-square against the detector's reported sigma (px^2 when
         no sigma_px was given): 1 when the data are as noisy as stated.
     residuals_px : ndarray of shape (Q, 2)
-        modelled - observed (col, row) at the estimate.
+        observed - modelled (col, row) at the estimate [px].
     rms_px : float
         Root mean square of all residual coordinates.
     cost : float
@@ -534,7 +534,7 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
                              weights=None if loss == "linear" else res.weights)
     cov, noise, cov_noise, centre_sens, covariance = unc
     u_c = None if centre_sens is None else np.broadcast_to(np.asarray(centre_uncertainty_m, float), (len(centres),))
-    r2 = res.residuals.reshape(2, -1).T.copy()
+    r2 = -res.residuals.reshape(2, -1).T                 # observed - modelled
     rms = float(np.sqrt(np.mean(res.residuals ** 2)))
     success, message = res.success, res.message
     names = param_names(terms)

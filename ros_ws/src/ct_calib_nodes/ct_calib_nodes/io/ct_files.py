@@ -122,7 +122,11 @@ def load_instrument(path) -> CtInstrument:
 
 
 def load_reference_object(path) -> ReferenceObject:
-    """Read reference_object.yaml (optional keys center_uncertainty and temperature are used)."""
+    """Read reference_object.yaml.
+
+    Optional keys used: ``center_uncertainty`` (m, per sphere; propagated into the geometry's
+    uncertainty), ``temperature`` (K, at calibration) and ``thermal_expansion`` (1/K, the
+    frame's linear expansion coefficient; this project's own optional key)."""
     data = _load(path)
     spheres = data.get("spheres")
     if not isinstance(spheres, list) or not spheres:
@@ -144,15 +148,30 @@ def load_reference_object(path) -> ReferenceObject:
         raise CtFileError(f"{path}: sphere ids are not unique")
     unc = np.asarray(unc)
     temp = data.get("temperature")
+    cte = data.get("thermal_expansion")
+    if cte is not None:
+        try:
+            cte = float(cte)
+        except (TypeError, ValueError):
+            raise CtFileError(f"{path}: thermal_expansion must be a number [1/K], got {cte!r}") from None
     try:
         return ReferenceObject(
             name=str(data.get("name", pathlib.Path(path).stem)), ids=np.asarray(ids),
             centres_of_m=np.asarray(centres), diameters_m=np.asarray(diameters),
             material=str(data.get("sphere_material", "steel")),
             center_uncertainty_m=None if np.all(np.isnan(unc)) else np.nan_to_num(unc, nan=float(np.nanmax(unc))),
-            temperature_K=float(temp) if temp is not None else None)
+            temperature_K=float(temp) if temp is not None else None, thermal_expansion_per_K=cte)
     except ValueError as exc:
         raise CtFileError(f"{path}: {exc}") from None
+
+
+def reference_at_scan(ref: ReferenceObject, instrument: CtInstrument):
+    """The reference object as it was during the scan: (ReferenceObject, note).
+
+    Applies thermal expansion when ct_instrument.yaml gives the object's ``temperature`` and the
+    reference object file its calibration ``temperature`` and ``thermal_expansion``; the note says
+    what was done or what is missing (it goes into the results and the logs)."""
+    return ref.at_temperature(instrument.temperature_K)
 
 
 def write_yaml(path, data: dict) -> pathlib.Path:

@@ -11,21 +11,19 @@ from ct_calib_nodes.core.error_map import COMPONENT_FIELDS as ERROR_MAP_FIELDS
 from ct_calib_nodes.core.geometry import STATIC_PARAM_NAMES, STATIC_PARAM_UNITS, static_to_detector_frame
 from ct_calib_nodes.io.convert import stamp_ns
 
-STATUS_SUCCESS, STATUS_NOT_CONVERGED, STATUS_DEGENERATE, STATUS_INSUFFICIENT, STATUS_FAILED = range(5)
+STATUS_SUCCESS, STATUS_NOT_CONVERGED, STATUS_DEGENERATE, STATUS_INSUFFICIENT, STATUS_FAILED, STATUS_POOR_FIT = range(6)
+
+#: the core results' ``outcome`` word -> metro_msgs/SolveStatus code (one vocabulary everywhere)
+OUTCOME_CODES = {"success": STATUS_SUCCESS, "not_converged": STATUS_NOT_CONVERGED, "degenerate": STATUS_DEGENERATE,
+                 "insufficient_data": STATUS_INSUFFICIENT, "failed": STATUS_FAILED, "poor_fit": STATUS_POOR_FIT}
 
 
 def status_code(res) -> int:
-    """Map a core result to metro_msgs/SolveStatus codes."""
+    """Map a core result's ``outcome`` to metro_msgs/SolveStatus codes."""
     if res.success:
         return STATUS_SUCCESS
-    msg = (res.message or "").lower()
-    if any(w in msg for w in ("degenera", "coplanar", "rank", "ill-conditioned", "not identifiable")):
-        return STATUS_DEGENERATE
-    if any(w in msg for w in ("too few", "insufficient", "no observations", "not enough")):
-        return STATUS_INSUFFICIENT
-    if res.status == -10:
-        return STATUS_DEGENERATE
-    return STATUS_NOT_CONVERGED if np.isfinite(res.cost) else STATUS_FAILED
+    code = OUTCOME_CODES.get(getattr(res, "outcome", "failed"), STATUS_FAILED)
+    return STATUS_FAILED if code == STATUS_SUCCESS else code
 
 
 def estimate_msg(res, model: str, stamp, frame_id: str = "ct_detector", n_rejected: int = 0):

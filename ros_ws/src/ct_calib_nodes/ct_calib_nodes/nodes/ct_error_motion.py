@@ -40,7 +40,7 @@ class CtErrorMotion(Node):
     def __init__(self):
         super().__init__("ct_error_motion")
         self.p = declare_parameters(self, PARAMS)
-        self.instrument, self.ref = load_ct_files(self.p)
+        self.instrument, self.ref = load_ct_files(self.p, self.get_logger())
         self.intake = ObservationIntake(self, self.ref)
         self.acc = self.intake.acc
         self.static = None

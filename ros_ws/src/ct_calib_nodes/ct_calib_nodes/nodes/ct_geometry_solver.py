@@ -33,7 +33,7 @@ class CtGeometrySolver(Node):
     def __init__(self):
         super().__init__("ct_geometry_solver")
         self.p = declare_parameters(self, PARAMS)
-        self.instrument, self.ref = load_ct_files(self.p)
+        self.instrument, self.ref = load_ct_files(self.p, self.get_logger())
         self.intake = ObservationIntake(self, self.ref)
         self.acc = self.intake.acc
         self.solved_n_frames = -1

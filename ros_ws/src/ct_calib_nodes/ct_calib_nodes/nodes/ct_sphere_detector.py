@@ -38,7 +38,7 @@ class CtSphereDetector(Node):
     def __init__(self):
         super().__init__("ct_sphere_detector")
         self.p = p = declare_parameters(self, PARAMS)
-        self.instrument, self.ref = load_ct_files(p)
+        self.instrument, self.ref = load_ct_files(p, self.get_logger())
         self.proc = FrameProcessor(self.ref, self.instrument.detector, self.instrument.sdd_reported_m,
                                    self.instrument.flat_field_counts, init_frames=int(p["init_frames"]))
         self.images, self.stages = {}, {}     # stamp_ns -> (msg, arrival time)

@@ -66,12 +66,16 @@ def declare_parameters(node, params: dict) -> dict:
     return {name: node.get_parameter(name).value for name in params}
 
 
-def load_ct_files(p: dict):
-    """(CtInstrument, ReferenceObject) from the CT_FILE_PARAMS values (package defaults when empty)."""
+def load_ct_files(p: dict, logger=None):
+    """(CtInstrument, ReferenceObject at the scan temperature) from the CT_FILE_PARAMS values
+    (package defaults when empty); the thermal-expansion note goes to ``logger``."""
     from ct_calib_nodes.io import ct_files  # noqa: PLC0415
 
     instrument = ct_files.load_instrument(p["instrument_file"] or ct_files.default_instrument_path())
     ref = ct_files.load_reference_object(p["reference_object_file"] or ct_files.default_reference_object_path())
+    ref, note = ct_files.reference_at_scan(ref, instrument)
+    if logger is not None:
+        logger.info(note)
     return instrument, ref
 
 
