@@ -144,7 +144,8 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
         for k in range(1, len(out.acc.positions)):
             try:
                 out.motions[mode][k] = solve_campaign_position(out.acc, k, published, instrument.detector,
-                                                               mode=mode, loss=loss)
+                                                               mode=mode, loss=loss,
+                                                               multi=out.motions.get("multi", {}).get(k))
             except ValueError as exc:
                 out.problems.append(f"position {k + 1} ({mode}): {exc}")
         if out.motions[mode]:

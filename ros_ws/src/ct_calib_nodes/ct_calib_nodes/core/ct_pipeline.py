@@ -133,11 +133,18 @@ def solve_campaign_static(acc: CampaignAccumulator, centres_of_m, detector: Dete
 
 
 def solve_campaign_position(acc: CampaignAccumulator, k: int, static: StaticResult, detector: DetectorSpec,
-                            mode: str = "multi", **kwargs) -> MotionResult:
-    """Error motions of stage position k (0-based; k = 0 is the reference) relative to k = 0."""
+                            mode: str = "multi", multi: MotionResult | None = None, **kwargs) -> MotionResult:
+    """Error motions of stage position k (0-based; k = 0 is the reference) relative to k = 0.
+
+    ``multi``: the multi-projection result of the same position, when solved already; a
+    "single" solve takes the size of the per-projection shared shift from it (else it solves
+    the multi-projection problem itself for that).
+    """
     if not 0 <= k < len(acc.positions):
         raise ValueError(f"stage position {k} not in 0..{len(acc.positions) - 1}")
     p = acc.positions[k]
+    if mode == "single" and multi is not None and multi.success and multi.noise is not None:
+        kwargs.setdefault("view_sd_px", multi.noise.view_sd_px)
     return solve_error_motion(p.observations(), static, detector, p.srd_reported_m,
                               acc.positions[0].srd_reported_m, mode=mode, **kwargs)
 

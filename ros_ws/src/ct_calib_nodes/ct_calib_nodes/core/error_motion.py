@@ -35,7 +35,8 @@ from .ct_model import MotionKernel, lm_function
 from .geometry import (MOTION_PARAM_NAMES, MOTION_PARAM_UNITS, DetectorFrameGeometry, DetectorSpec, motion_rotation,
                        static_to_detector_frame)
 from .lm import LOSSES, STOL, correlation_from_covariance, covariance_from_jacobian, levenberg_marquardt
-from .noise import MAX_RMS_RATIO, NoiseModel, assess_fit, axis_weights_sigma, estimate_noise, sandwich_covariance
+from .noise import (MAX_RMS_RATIO, NoiseModel, assess_fit, axis_normals, axis_weights_sigma, estimate_noise,
+                    sandwich_covariance)
 from .observations import CentreObservations
 from .static_solver import StaticResult, _plain
 from .terms import check_terms
@@ -273,9 +274,10 @@ def solve_error_motion(obs_k: CentreObservations, static, detector: DetectorSpec
     jt = jac()
     noise = estimate_noise(r, sigma, obs.view_index, 6, view_sd_px=view_sd_px)
     w = 1.0 / axis_weights_sigma(sigma, q, noise) if loss == "linear" else res.weights
-    cov = covariance_from_jacobian(jt.T, r, w, cond_limit=cond_limit)
+    normals = axis_normals(jt, 1.0 / w)
+    cov = covariance_from_jacobian(jt.T, r, w, cond_limit=cond_limit, normal=normals[0] + normals[1])
     cov_cond = sandwich_covariance(jt, 1.0 / w, axis_weights_sigma(sigma, q, noise), obs.view_index, noise,
-                                   cov.normal_inverse)
+                                   cov.normal_inverse, normals=normals)
     success, message = res.success, res.message
     outcome = "success" if success else "not_converged"
     if cov.rank_deficient:

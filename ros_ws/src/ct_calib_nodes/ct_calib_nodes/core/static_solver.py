@@ -23,7 +23,8 @@ import numpy as np
 from .ct_model import StaticKernel, lm_function, param_names, param_units
 from .geometry import DetectorFrameGeometry, DetectorSpec, object_rotation, static_to_detector_frame
 from .lm import LOSSES, STOL, correlation_from_covariance, covariance_from_jacobian, levenberg_marquardt
-from .noise import MAX_RMS_RATIO, NoiseModel, assess_fit, axis_weights_sigma, estimate_noise, sandwich_covariance
+from .noise import (MAX_RMS_RATIO, NoiseModel, assess_fit, axis_normals, axis_weights_sigma, estimate_noise,
+                    sandwich_covariance)
 from .observations import CentreObservations
 from .terms import check_terms
 
@@ -298,41 +299,51 @@ def _centre_sensitivity(jac, weights, x, obs: CentreObservations, normal_inverse
     model only through its own observations, as C_SRF = R_obj C_OF + P (eq. 1), so
     d r / d C_i = (d r / d P) R_obj on the rows of sphere i: the Jacobian's x_P, y_P, z_P columns.
     """
-    w2 = np.asarray(weights, dtype=float) ** 2            # jac: (2Q, n) blocked
+    from scipy.sparse import csr_matrix  # noqa: PLC0415
+
+    jac = np.asarray(jac)                                 # (2Q, n) blocked
+    w2 = np.asarray(weights, dtype=float) ** 2
+    n, m = jac.shape[1], jac.shape[0]
     rows_sphere = np.concatenate([obs.sphere_index, obs.sphere_index])
-    jw = jac * w2[:, None]
-    n = jac.shape[1]
-    b = np.zeros((n, n_spheres, 3))
-    for c in range(3):
-        prod = jw * jac[:, 7 + c][:, None]
-        for j in range(n):
-            b[j, :, c] = np.bincount(rows_sphere, prod[:, j], n_spheres)
+    # Z (2Q, 3N): row q holds d r_q / d P in the three columns of its sphere; B^T = Z^T W J
+    z = csr_matrix((np.ascontiguousarray(jac[:, 7:10]).ravel(),
+                    (np.repeat(np.arange(m), 3), (3 * rows_sphere[:, None] + np.arange(3)).ravel())),
+                   shape=(m, 3 * n_spheres))
+    b = np.asarray(z.T @ (jac * w2[:, None])).reshape(n_spheres, 3, n).transpose(0, 2, 1)    # (N, n, 3)
     r_obj = object_rotation(x[10], x[11], x[12])
-    b = b @ r_obj                                        # (n, N, 3): d r / d C_OF = (d r / d P) R_obj
-    return -normal_inverse @ b.reshape(n, 3 * n_spheres)
+    b = b @ r_obj                                        # (N, n, 3): d r / d C_OF = (d r / d P) R_obj
+    return -normal_inverse @ b.transpose(1, 0, 2).reshape(n, 3 * n_spheres)
 
 
 def static_uncertainty(x, kern: StaticKernel, obs: CentreObservations, sigma, n_spheres: int,
-                       centre_uncertainty_m=None, cond_limit: float = 1e10, weights=None):
+                       centre_uncertainty_m=None, cond_limit: float = 1e10, weights=None, evaluated=None):
     """Uncertainty of a static estimate from the data it rests on (the same numbers whoever asks).
 
     At ``x``: the noise model from the residuals (noise.py), weights = the reported sigma
-    rescaled per axis (or the given final IRLS ``weights`` of a robust fit), the sandwich
+    rescaled per axis (or the ``weights`` the estimator used: a robust fit's final IRLS
+    weights, or the reported sigma's when no per-axis refit was needed), the sandwich
     covariance of the observation noise, and, with ``centre_uncertainty_m``, the sensitivity to
     the calibrated centres and their contribution.
+
+    ``evaluated`` = (f (2Q,), J (2Q, n)) at ``x`` if already known (the solver's last LM
+    iterate), else the kernel is evaluated.
 
     Returns
     -------
     (CovarianceInfo, NoiseModel, cov_noise (n, n), centre_sensitivity (n, 3N) or None, covariance (n, n))
     """
-    r, jac = kern.evaluate(x)
-    jt = jac()                                            # (n, 2Q)
+    if evaluated is None:
+        r, jac = kern.evaluate(x)
+        jt = jac()                                        # (n, 2Q)
+    else:
+        r, jt = evaluated[0], np.asarray(evaluated[1]).T
     q = obs.n_obs
     noise = estimate_noise(r, sigma, obs.view_index, kern.n)
     w = 1.0 / axis_weights_sigma(sigma, q, noise) if weights is None else np.asarray(weights, dtype=float)
-    cov = covariance_from_jacobian(jt.T, r, w, cond_limit=cond_limit)
+    normals = axis_normals(jt, 1.0 / w)
+    cov = covariance_from_jacobian(jt.T, r, w, cond_limit=cond_limit, normal=normals[0] + normals[1])
     cov_noise = sandwich_covariance(jt, 1.0 / w, axis_weights_sigma(sigma, q, noise), obs.view_index, noise,
-                                    cov.normal_inverse)
+                                    cov.normal_inverse, normals=normals)
     if centre_uncertainty_m is None:
         return cov, noise, cov_noise, None, cov_noise
     u_c = np.broadcast_to(np.asarray(centre_uncertainty_m, dtype=float), (n_spheres,))
@@ -521,17 +532,27 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
     # shared shift. The fit is redone once with the sigma rescaled per axis (so columns and rows
     # get their measured relative weights) and the covariance is the sandwich under that model.
     noise = estimate_noise(res.residuals, sigma, obs.view_index, n_par)
+    fit_weights = None if loss == "linear" else res.weights
     if loss == "linear" and res.success and np.all(np.isfinite(res.x)):
-        sigma_fit = axis_weights_sigma(sigma, q, noise)
-        res2 = levenberg_marquardt(fun, None, res.x, sigma=sigma_fit, max_iter=max_iter, stol=STOL)
-        nfev, njev, nit = nfev + res2.nfev, njev + res2.njev, nit + res2.n_iter
-        if res2.success:
-            res = res2
+        if abs(noise.factor_u / max(noise.factor_v, 1e-300) - 1.0) > 0.1:
+            # columns and rows noisier than stated by different factors: refit with those weights
+            sigma_fit = axis_weights_sigma(sigma, q, noise)
+            res2 = levenberg_marquardt(fun, None, res.x, sigma=sigma_fit, max_iter=max_iter, stol=STOL)
+            nfev, njev, nit = nfev + res2.nfev, njev + res2.njev, nit + res2.n_iter
+            if res2.success:
+                res = res2
+        else:
+            # within 10 % of each other: the reported sigma's relative weights stand (the efficiency
+            # lost is below 0.3 %); the covariance uses the weights the estimate was made with
+            fit_weights = np.ones(2 * q) / (1.0 if sigma is None else sigma)
     if not (np.all(np.isfinite(res.x)) and np.all(np.isfinite(res.residuals))):
         return _failed(obs, centres, terms, start, f"the solve diverged: {res.message}", status=res.status,
                        outcome="failed")
+    # the last LM iterate's Jacobian is at res.x unless the chord test stopped it (then it is one
+    # small step away): reuse it only in the first case
+    at_x = res.status != 4 or "chord" not in res.message
     unc = static_uncertainty(res.x, kern, obs, sigma, len(centres), centre_uncertainty_m, cond_limit,
-                             weights=None if loss == "linear" else res.weights)
+                             weights=fit_weights, evaluated=(res.residuals, res.jac) if at_x else None)
     cov, noise, cov_noise, centre_sens, covariance = unc
     u_c = None if centre_sens is None else np.broadcast_to(np.asarray(centre_uncertainty_m, float), (len(centres),))
     r2 = -res.residuals.reshape(2, -1).T                 # observed - modelled

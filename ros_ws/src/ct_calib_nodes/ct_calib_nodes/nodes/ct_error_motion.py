@@ -107,7 +107,7 @@ class CtErrorMotion(Node):
                 t0 = time.perf_counter()
                 try:
                     res = solve_campaign_position(self.acc, k, self.static, self.instrument.detector, mode=mode,
-                                                  loss=str(self.p["loss"]))
+                                                  loss=str(self.p["loss"]), multi=self.results["multi"].get(k))
                 except ValueError as exc:
                     self.get_logger().error(f"position {k + 1} ({mode}): {exc}")
                     self.solved_frames[mode][k] = n
