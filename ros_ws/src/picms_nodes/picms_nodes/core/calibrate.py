@@ -210,20 +210,44 @@ def _skew(v):
     return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
 
 
-def solve_cameras(U, cov_U, obs, obs_cov, init, max_iter: int = 30):
-    """Joint GLS of camera poses. U (N, 3) target points in the body frame; cov_U (3N, 3N);
-    obs (J, N, 2) normalised observations (NaN = missing); obs_cov (J, N, 2, 2);
-    init: list of (R_frame_camera, C). Returns (poses, cov (6J, 6J), residuals (J, N, 2), chi2, dof).
+def travel_matrix(sq) -> np.ndarray:
+    """Unit travel directions (columns) in the stage frame from squareness [xy, xz, yz] (rad).
+
+    Each angle is the included angle of the pair of travels minus 90 deg (INTERFACES.md).
+    x is the stage x axis; y lies in the stage xy plane (the frame's definition).
+    """
+    sxy, sxz, syz = sq
+    ax = np.array([1.0, 0.0, 0.0])
+    ay = np.array([-np.sin(sxy), np.cos(sxy), 0.0])
+    azx = -np.sin(sxz)
+    azy = (-np.sin(syz) - ay[0] * azx) / ay[1]
+    az = np.array([azx, azy, np.sqrt(max(1.0 - azx * azx - azy * azy, 0.0))])
+    return np.column_stack([ax, ay, az])
+
+
+def solve_cameras(U_fn, n_extra, extra0, cov_U, obs, obs_cov, init, prior=None, max_iter: int = 30):
+    """Joint Gauss-Newton / GLS of the camera poses (and shared extra parameters).
+
+    U_fn(extra) -> (N, 3): the target point in the probe-body frame at each station.
+    cov_U (3N, 3N): covariance of U (its noise is shared by the cameras: joint weighting).
+    obs (J, N, 2) normalised observations (NaN = missing); obs_cov (J, N, 2, 2).
+    init: list of (R_frame_camera, C). prior: (value (k,), cov (k, k)) on the extras or None.
     Parameters per camera: small rotation in the camera frame (R <- R exp([d]x)), centre C.
+    Returns (poses, extra, cov (6J + k, 6J + k), residuals (J, N, 2), chi2, dof).
     """
     J_, N = obs.shape[:2]
     poses = [(np.array(R, float), np.array(C, float)) for R, C in init]
+    extra = np.array(extra0, float)
     mask = np.isfinite(obs[..., 0])
     rows = [(j, i) for i in range(N) for j in range(J_) if mask[j, i]]
     m = len(rows)
+    npar = 6 * J_ + n_extra
     for it in range(max_iter):
+        U = U_fn(extra)
+        if n_extra:
+            _, dU = _num_jac(lambda e: U_fn(e).ravel(), extra, 1e-8)
         r = np.zeros(2 * m)
-        Jp = np.zeros((2 * m, 6 * J_))
+        Jp = np.zeros((2 * m, npar))
         Ju = np.zeros((2 * m, 3 * N))
         S = np.zeros((2 * m, 2 * m))
         for k, (j, i) in enumerate(rows):
@@ -236,15 +260,25 @@ def solve_cameras(U, cov_U, obs, obs_cov, init, max_iter: int = 30):
             Jp[2 * k:2 * k + 2, 6 * j + 3:6 * j + 6] = -P @ R.T
             Ju[2 * k:2 * k + 2, 3 * i:3 * i + 3] = P @ R.T
             S[2 * k:2 * k + 2, 2 * k:2 * k + 2] = obs_cov[j, i]
+        if n_extra:
+            Jp[:, 6 * J_:] = Ju @ dU
         S = S + Ju @ cov_U @ Ju.T
         L = np.linalg.cholesky(S)
         Jw = np.linalg.solve(L, Jp)
         rw = np.linalg.solve(L, r)
+        if prior is not None:
+            pv, pc_ = prior
+            Lp = np.linalg.cholesky(np.linalg.inv(pc_))
+            Jpr = np.zeros((n_extra, npar))
+            Jpr[:, 6 * J_:] = Lp.T
+            Jw = np.vstack([Jw, Jpr])
+            rw = np.concatenate([rw, Lp.T @ (pv - extra)])
         N_ = Jw.T @ Jw
         d = np.linalg.solve(N_, Jw.T @ rw)
         for j in range(J_):
             R, C = poses[j]
             poses[j] = (R @ rotvec_to_matrix(d[6 * j:6 * j + 3]), C + d[6 * j + 3:6 * j + 6])
+        extra = extra + d[6 * J_:]
         if np.max(np.abs(d)) < 1e-12:
             break
     cov = np.linalg.inv(N_)
@@ -252,7 +286,7 @@ def solve_cameras(U, cov_U, obs, obs_cov, init, max_iter: int = 30):
     for k, (j, i) in enumerate(rows):
         res[j, i] = r[2 * k:2 * k + 2]
     chi2 = float(rw @ rw)
-    return poses, cov, res, chi2, 2 * m - 6 * J_
+    return poses, extra, cov, res, chi2, 2 * m - 6 * J_
 
 
 def solvepnp_pose(U, n):
@@ -382,28 +416,43 @@ def calibrate(stations: list[Station], camera_info: dict, cell: dict) -> Calibra
         if np.isfinite(obs[j, :, 0]).sum() < 6:
             raise CalibrationError(f"{c}: disc seen at {int(np.isfinite(obs[j, :, 0]).sum())} settled stations; "
                                    "the pose needs at least 6")
-    init, pnp = [], []
+    # Target points in the probe-body frame, stage axes: the SMR* is fixed, so relative to
+    # X* it sits at -(travel between the reference and station i) = -A(squareness) (q_i - q_ref).
+    # The encoders give the travel (steps are exact to the encoder resolution); the squareness
+    # angles are shared unknowns, constrained by the tracker's estimate (prior) and by the
+    # images; the tracker-linked alternative (U from the rigid fits) is kept for comparison.
+    dq = q - q[0]
+    enc_var = (1e-7) ** 2 / 12 + (float(cell.get("stage", {}).get("encoder_noise", 0.0)) ** 2)
+    cov_Uq = np.eye(3 * N) * enc_var
+
+    def U_fn(e):
+        return -(dq @ travel_matrix(e).T)
+
+    pnp = []
     for j in range(len(cams)):
         ok = np.isfinite(obs[j, :, 0])
-        pnp.append(solvepnp_pose(U_T[ok], obs[j, ok]))
-        init.append(pnp[-1])
-    poses, cov_cam, resid, chi2, dof = solve_cameras(U_T, cov_U, obs, obs_cov, init)
+        pnp.append(solvepnp_pose(U_fn(ang)[ok], obs[j, ok]))
+    prior = (ang, cov_der[:3, :3])
+    poses, sq_est, cov_cam, resid, chi2, dof = solve_cameras(U_fn, 3, ang, cov_Uq, obs, obs_cov, pnp, prior)
+    cov_sq = cov_cam[-3:, -3:]
+    # OpenCV solvePnP (iterative, unweighted reprojection error) per camera on the same final
+    # target points, for comparison with the joint GLS
+    pnp = []
+    for j in range(len(cams)):
+        ok = np.isfinite(obs[j, :, 0])
+        pnp.append(solvepnp_pose(U_fn(sq_est)[ok], obs[j, ok]))
     cam_results = {}
     for j, c in enumerate(cams):
-        R_T, C_T = poses[j]
-        Rs = R_ts.T @ R_T
-        # C relative to X* at the reference station -> relative to X* (stage frame, same body offset)
-        Cs = R_ts.T @ C_T
+        Rs, Cs = poses[j]
         cr = cov_cam[6 * j:6 * j + 3, 6 * j:6 * j + 3]
         cc = cov_cam[6 * j + 3:6 * j + 6, 6 * j + 3:6 * j + 6]
-        # camera-frame rotation -> stage-frame rotation, plus the stage frame's own uncertainty
-        cov_rot = Rs @ cr @ Rs.T + cov_rts
-        cov_c = R_ts.T @ cc @ R_ts + _skew(Cs) @ cov_rts @ _skew(Cs).T
+        cov_rot = Rs @ cr @ Rs.T
         f = camera_info[c].f_px
         rr = resid[j][np.isfinite(resid[j, :, 0])]
-        cam_results[c] = CameraResult(c, Rs, Cs, np.sqrt(np.diag(cov_rot)), np.sqrt(np.diag(cov_c)),
-                                      float(np.sqrt(np.mean(rr ** 2)) * f),
-                                      R_ts.T @ pnp[j][0], R_ts.T @ pnp[j][1])
+        cam_results[c] = CameraResult(c, Rs, Cs, np.sqrt(np.diag(cov_rot)), np.sqrt(np.diag(cc)),
+                                      float(np.sqrt(np.mean(rr ** 2)) * f), pnp[j][0], pnp[j][1])
+    ang = sq_est
+    u_ang = np.sqrt(np.diag(cov_sq))
     # x_j*: the reference station's disc centre in raw pixels
     pixels, u_pixels = {}, {}
     for j, c in enumerate(cams):
