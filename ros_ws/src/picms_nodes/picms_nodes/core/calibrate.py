@@ -319,7 +319,12 @@ def calibrate(stations: list[Station], camera_info: dict, cell: dict) -> Calibra
             good.append(s)
     if not good:
         have = sorted({k for s in stations for k in s.readings})
-        raise CalibrationError(f"no settled station with the SMR* and at least 3 constellation SMRs (readings seen: {have})")
+        n_c = max((sum(len(s.readings.get(c, [])) >= 2 for c in const_names) for s in stations), default=0)
+        if n_c < 3:
+            raise CalibrationError(f"fewer than 3 constellation SMRs measured at any settled station ({n_c}; "
+                                   f"readings seen: {have}): the probe frame is undefined")
+        raise CalibrationError(f"no settled station with a reading of the probe SMR {star!r} "
+                               f"(readings seen: {have})")
     ref = good[0]
     if not all(c in ref.detections for c in cams):
         missing = [c for c in cams if c not in ref.detections]
