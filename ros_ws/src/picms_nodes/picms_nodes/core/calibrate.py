@@ -242,6 +242,7 @@ def solve_cameras(U_fn, n_extra, extra0, cov_U, obs, obs_cov, init, prior=None, 
     rows = [(j, i) for i in range(N) for j in range(J_) if mask[j, i]]
     m = len(rows)
     npar = 6 * J_ + n_extra
+    converged = False
     for it in range(max_iter):
         U = U_fn(extra)
         if n_extra:
@@ -274,13 +275,19 @@ def solve_cameras(U_fn, n_extra, extra0, cov_U, obs, obs_cov, init, prior=None, 
             Jw = np.vstack([Jw, Jpr])
             rw = np.concatenate([rw, Lp.T @ (pv - extra)])
         N_ = Jw.T @ Jw
-        d = np.linalg.solve(N_, Jw.T @ rw)
+        try:
+            d = np.linalg.solve(N_, Jw.T @ rw)
+        except np.linalg.LinAlgError:
+            raise CalibrationError("camera pose fit is singular: the stations do not determine the poses") from None
         for j in range(J_):
             R, C = poses[j]
             poses[j] = (R @ rotvec_to_matrix(d[6 * j:6 * j + 3]), C + d[6 * j + 3:6 * j + 6])
         extra = extra + d[6 * J_:]
         if np.max(np.abs(d)) < 1e-12:
+            converged = True
             break
+    if not converged and np.max(np.abs(d)) > 1e-9:
+        raise CalibrationError(f"camera pose fit did not converge in {max_iter} iterations (last step {np.max(np.abs(d)):.1e})")
     cov = np.linalg.inv(N_)
     res = np.full((J_, N, 2), np.nan)
     for k, (j, i) in enumerate(rows):
@@ -290,12 +297,23 @@ def solve_cameras(U_fn, n_extra, extra0, cov_U, obs, obs_cov, init, prior=None, 
 
 
 def solvepnp_pose(U, n):
-    """OpenCV solvePnP (SOLVEPNP_ITERATIVE) on normalised points; returns (R_frame_camera, C)."""
-    ok, rvec, tvec = cv2.solvePnP(np.ascontiguousarray(U, dtype=np.float64).reshape(-1, 1, 3),
-                                  np.ascontiguousarray(n, dtype=np.float64).reshape(-1, 1, 2),
-                                  np.eye(3), None, flags=cv2.SOLVEPNP_ITERATIVE)
+    """OpenCV solvePnP on normalised points; returns (R_frame_camera, C).
+
+    Started by SOLVEPNP_SQPNP (global, any N >= 3; the DLT start of the iterative method is
+    unreliable with 6-7 points of a 12 mm pattern seen from 180 mm), then refined by
+    SOLVEPNP_ITERATIVE (Levenberg-Marquardt on the unweighted reprojection error).
+    """
+    obj = np.ascontiguousarray(U, dtype=np.float64).reshape(-1, 1, 3)
+    img = np.ascontiguousarray(n, dtype=np.float64).reshape(-1, 1, 2)
+    if len(obj) < 4:
+        raise CalibrationError(f"pose needs at least 4 stations seen by the camera, got {len(obj)}")
+    ok, rvec, tvec = cv2.solvePnP(obj, img, np.eye(3), None, flags=cv2.SOLVEPNP_SQPNP)
     if not ok:
-        raise CalibrationError("solvePnP failed")
+        raise CalibrationError("solvePnP (SQPnP start) failed")
+    ok, rvec, tvec = cv2.solvePnP(obj, img, np.eye(3), None, rvec, tvec, useExtrinsicGuess=True,
+                                  flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok:
+        raise CalibrationError("solvePnP (iterative) failed")
     Rcw = cv2.Rodrigues(rvec)[0]
     return Rcw.T, -Rcw.T @ tvec.ravel()
 

@@ -55,6 +55,10 @@ def calibrate_recording(rec, frames=None) -> tuple[CalibrationResult, PipelineRe
         raise CalibrationError("the stage never settled: no period without motion in joint_states "
                                f"({len(rec.joint_stamps_ns)} readings)")
     dets = detect_settled_frames(rec.frames if frames is None else frames, rec.camera_info, windows, report)
+    no_info = sorted({c for _, c, r in report.skipped if r.startswith("no CameraInfo")})
+    if no_info:
+        raise CalibrationError(f"CameraInfo missing for {no_info}: their images cannot be undistorted "
+                               "(intrinsic calibration K, D required)")
     if not dets:
         why = sorted({r for _, _, r in report.skipped})
         raise CalibrationError(f"no disc found in any settled frame ({report.n_settled_frames} settled of "
