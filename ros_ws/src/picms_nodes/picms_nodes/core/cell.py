@@ -177,3 +177,10 @@ def squareness_truth(A) -> dict:
         c = A[:, i] @ A[:, k] / np.linalg.norm(A[:, i]) / np.linalg.norm(A[:, k])
         out[key] = float(np.arccos(np.clip(c, -1, 1)) - np.pi / 2)
     return out
+
+
+def cell_from_seed(seed: int, vary_physics: bool = False, **overrides) -> CellTruth:
+    """The same cell in every process that uses the same seed and overrides (simulator nodes)."""
+    rng = np.random.default_rng(int(seed))
+    phys = make_physics(rng, **overrides) if vary_physics else replace(Physics(), **overrides)
+    return make_cell(rng, phys)

@@ -46,6 +46,21 @@ def detect_settled_frames(frames, camera_info, windows, report: PipelineReport):
     return out
 
 
+def calibrate_detections(rec, detections, report: PipelineReport | None = None) -> CalibrationResult:
+    """Calibrate from detections [(stamp_ns, camera, DiscDetection)] made as frames arrived
+    (live node); only those inside settled windows are used."""
+    report = report or PipelineReport()
+    windows = settled_windows(rec.joint_stamps_ns, rec.joint_positions)
+    report.windows = windows
+    if not windows:
+        raise CalibrationError("the stage never settled: no period without motion in joint_states "
+                               f"({len(rec.joint_stamps_ns)} readings)")
+    dets = [d for d in detections if in_window(d[0], windows) >= 0]
+    if not dets:
+        raise CalibrationError("no disc found in any settled frame")
+    return calibrate(assign(windows, dets, rec.tracker), rec.camera_info, rec.cell)
+
+
 def calibrate_recording(rec, frames=None) -> tuple[CalibrationResult, PipelineReport]:
     """Calibrate from a Recording (frames may be given as a separate iterable, e.g. streamed)."""
     report = PipelineReport()
