@@ -23,5 +23,6 @@ setup(
         "picms_tracker_sim = picms_nodes.nodes.picms_tracker_sim:main",
         "picms_calibration = picms_nodes.nodes.picms_calibration:main",
         "picms_calibrate_offline = picms_nodes.offline:main",
+        "picms_demo = picms_nodes.nodes.picms_demo:main",
     ]},
 )

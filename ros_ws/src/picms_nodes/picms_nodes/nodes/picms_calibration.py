@@ -17,7 +17,7 @@ import numpy as np
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from geometry_msgs.msg import PointStamped
 from metro_msgs.msg import PicmsCalibration
 from metro_msgs.srv import RunPicmsCalibration
@@ -43,7 +43,10 @@ PARAMS = {
     "step_z_m": (0.004, "stage excursion along +-z [m]"),
     "reference": ([0.0, 0.0, 0.0], "stage reading at which the SMR* is at X* [m]"),
     "dwell_s": (3.0, "time to collect frames and tracker readings once settled [s]"),
-    "settle_timeout_s": (20.0, "give up when the stage has not settled this long after a command [s]"),
+    "frames_per_station": (2, "settled frames per camera to collect at each station [count]"),
+    "settle_timeout_s": (30.0, "give up when the stage has not settled this long after a command [s]"),
+    "image_reliable": (True, "subscribe images reliably (5 MP frames over best-effort UDP are mostly lost); "
+                             "false to match a best-effort camera driver [-]"),
     "auto_start": (False, "run the calibration once at start-up [-]"),
     "exit_when_done": (False, "end the process after an auto_start run [-]"),
 }
@@ -79,11 +82,13 @@ class PicmsCalibrationNode(Node):
             self.create_subscription(PointStamped, f"/picms/tracker/smr/{name}",
                                      lambda m, n=name: self.on_smr(n, m), qos_profile_sensor_data,
                                      callback_group=sensors)
+        img_qos = QoSProfile(depth=4, reliability=ReliabilityPolicy.RELIABLE) if p["image_reliable"] \
+            else qos_profile_sensor_data
         for c in p["cameras"]:
             self.create_subscription(CameraInfo, INFO_TOPIC.format(c), lambda m, c=c: self.on_info(c, m),
                                      QOS_LATCHED, callback_group=sensors)
             self.create_subscription(Image, IMAGE_TOPIC.format(c), lambda m, c=c: self.on_image(c, m),
-                                     qos_profile_sensor_data, callback_group=images)
+                                     img_qos, callback_group=images)
         self.cmd = self.create_publisher(JointTrajectory, COMMAND_TOPIC, 10)
         self.pub = self.create_publisher(PicmsCalibration, CALIBRATION_TOPIC, QOS_LATCHED)
         self.create_service(RunPicmsCalibration, SERVICE, self.on_service, callback_group=self.svc_group)
@@ -160,7 +165,11 @@ class PicmsCalibrationNode(Node):
             w = settled_windows(t[keep], q[keep]) if keep.sum() > 3 else []
             if w and w[-1].end_ns == t[keep].max() and np.all(np.abs(w[-1].q - target) <= res) \
                     and w[-1].end_ns - w[-1].start_ns >= dwell_ns:
-                return True
+                with self.lock:
+                    n = {c: sum(1 for st, cc, _ in self.dets if cc == c and w[-1].start_ns <= st <= w[-1].end_ns)
+                         for c in self.p["cameras"]}
+                if min(n.values()) >= int(self.p["frames_per_station"]):
+                    return True
         return False
 
     def run(self, write_file=True):
@@ -187,7 +196,8 @@ class PicmsCalibrationNode(Node):
                 self.get_logger().info(f"station {k}: stage to {np.round(target * 1e3, 3).tolist()} mm")
                 if not self._wait_settled(target, t_cmd):
                     raise CalibrationError(f"the stage never settled at {np.round(target * 1e3, 3).tolist()} mm "
-                                           f"within {self.p['settle_timeout_s']} s")
+                                           f"with {self.p['frames_per_station']} usable frames per camera "
+                                           f"within {self.p['settle_timeout_s']} s (see the skipped-frame warnings)")
             self._command(ref)
             with self.lock:
                 rec = Recording(cell=self.cell, camera_info=dict(self.info),

@@ -68,6 +68,14 @@ class PicmsCameraSim(Node):
             self.get_logger().warning(f"ignored joint_states: {exc}")
 
     def tick(self):
+        try:
+            self._tick()
+        except Exception:   # noqa: BLE001 - shutdown while a frame was being rendered
+            import rclpy
+            if rclpy.ok():
+                raise
+
+    def _tick(self):
         if self.latest is None:
             return
         stamp, q = self.latest
