@@ -168,7 +168,8 @@ class CalibrationResult:
     chi2_dof: float              # camera GLS chi^2 / dof
     n_stations: int
     notes: tuple = ()
-    camera_cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # joint (18, 18), tracker-aligned
+    camera_cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))  # joint (18 + 3) incl. squareness
+    design: dict = field(default_factory=dict)   # the pose fit's inputs: U (N, 3), obs (J, N, 2), obs_cov, cameras
 
 
 # ---------------------------------------------------------------- station data
@@ -514,4 +515,6 @@ def calibrate(stations: list[Station], camera_info: dict, cell: dict) -> Calibra
         squareness_rad=dict(zip(("xy", "xz", "yz"), ang.tolist())),
         u_squareness_rad=dict(zip(("xy", "xz", "yz"), u_ang.tolist())), scale_ppm=sc, u_scale_ppm=u_sc,
         tracker_sigma_m=float(sigma), rigid_fit_rms_m=rigid_rms, chi2_dof=float(chi2 / max(dof, 1)),
-        n_stations=N, notes=tuple(notes), camera_cov=cov_cam)
+        n_stations=N, notes=tuple(notes), camera_cov=cov_cam,
+        design={"U": U_fn(sq_est), "obs": obs, "obs_cov": obs_cov, "cov_U": cov_Uq, "cameras": cams,
+                "sq": sq_est, "sq_prior": prior})
