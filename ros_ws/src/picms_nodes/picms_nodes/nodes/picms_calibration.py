@@ -47,6 +47,7 @@ PARAMS = {
     "settle_timeout_s": (30.0, "give up when the stage has not settled this long after a command [s]"),
     "image_reliable": (True, "subscribe images reliably (5 MP frames over best-effort UDP are mostly lost); "
                              "false to match a best-effort camera driver [-]"),
+    "info_timeout_s": (20.0, "wait this long for joint_states and every CameraInfo before giving up [s]"),
     "auto_start": (False, "run the calibration once at start-up [-]"),
     "exit_when_done": (False, "end the process after an auto_start run [-]"),
 }
@@ -180,7 +181,7 @@ class PicmsCalibrationNode(Node):
             with self.lock:
                 self.js_t, self.js_q, self.tracker, self.dets = [], [], [], []
             cams = list(self.p["cameras"])
-            t_wait = time.monotonic() + 10.0
+            t_wait = time.monotonic() + float(self.p["info_timeout_s"])
             while time.monotonic() < t_wait and (not self.js_t or any(c not in self.info for c in cams)):
                 time.sleep(0.1)
             missing = [c for c in cams if c not in self.info]
