@@ -4,6 +4,7 @@ Each seed: a new cell (assembly, placement, lens, blur, noise, levels, tracker d
 a rendered Appendix A session, the full pipeline. Prints per-seed lines, then ONE JSON line:
 X* error and z-scores, x_j* errors, camera pose errors and z-scores, solvePnP beside the
 joint GLS, timing. Usage: python tests/benchmarks/validate_picms_calibration.py [n_seeds]
+       python tests/benchmarks/validate_picms_calibration.py --repeat [n]   (one cell, n noise seeds)
 """
 import json
 import sys
@@ -14,9 +15,9 @@ import numpy as np
 from picms_nodes.core import camera, campaign, cell, pipeline
 
 
-def run(seed, **phys):
+def run(seed, fixed_cell=None, **phys):
     rng = np.random.default_rng(1000 + seed)
-    c = cell.make_cell(rng, cell.make_physics(rng, **phys))
+    c = fixed_cell if fixed_cell is not None else cell.make_cell(rng, cell.make_physics(rng, **phys))
     t0 = time.perf_counter()
     rec, st = campaign.simulate_session(c, rng)
     t1 = time.perf_counter()
@@ -42,16 +43,47 @@ def run(seed, **phys):
         out["rot_z"] += (cr.R_stage_camera @ rv / cr.u_rotation_rad).tolist()
     sq_t = cell.squareness_truth(c.A_travel)
     out["sq_z"] = [(res.squareness_rad[k] - sq_t[k]) / res.u_squareness_rad[k] for k in sq_t]
+    out["x_star"] = res.p_tracker.tolist()
+    out["pixels"] = [float(v) for cn in sorted(res.pixels) for v in res.pixels[cn]]
+    out["u_pixels"] = [float(v) for cn in sorted(res.pixels) for v in res.u_pixels[cn]]
+    out["u_x_star"] = np.sqrt(np.diag(res.cov_p_tracker)).tolist()
+    out["centres"] = [float(v) for cn in sorted(res.cameras) for v in res.cameras[cn].p_stage_centre]
+    out["rotvecs"] = [float(v) for cn in sorted(res.cameras)
+                      for v in camera.matrix_to_rotvec(res.cameras[cn].R_stage_camera)]
     return out
 
 
+def repeatability(n):
+    """One cell (fixed assembly and physics), n re-calibrations with fresh noise: the spread."""
+    c = cell.make_cell(np.random.default_rng(7), cell.make_physics(np.random.default_rng(7)))
+    rows = []
+    for s in range(n):
+        r = run(s, fixed_cell=c)
+        rows.append(r)
+        print(json.dumps({"rep": s, "xstar_err_um": round(r["xstar_err_um"], 3)}), flush=True)
+    sd = lambda k: np.std(np.array([r[k] for r in rows]), axis=0, ddof=1)
+    print(json.dumps({
+        "mode": "repeatability", "n": n,
+        "x_star_sd_um_per_axis": (sd("x_star") * 1e6).round(2).tolist(),
+        "x_star_stated_u_um": (np.array(rows[0]["u_x_star"]) * 1e6).round(2).tolist(),
+        "x_star_err_um_median": float(np.median([r["xstar_err_um"] for r in rows])),
+        "pixels_sd_px": sd("pixels").round(4).tolist(), "pixels_stated_u_px": np.round(rows[0]["u_pixels"], 4).tolist(),
+        "camera_centre_sd_um": (sd("centres") * 1e6).round(2).tolist(),
+        "camera_rot_sd_arcsec": (sd("rotvecs") * 206265).round(2).tolist(),
+        "machine": "2 shared cores, loaded"}))
+
+
 def main():
+    if len(sys.argv) > 1 and sys.argv[1] == "--repeat":
+        repeatability(int(sys.argv[2]) if len(sys.argv) > 2 else 10)
+        return
     n = int(sys.argv[1]) if len(sys.argv) > 1 else 10
     rows = []
     for s in range(n):
         r = run(s)
         rows.append(r)
-        print(json.dumps({k: (np.round(v, 4).tolist() if isinstance(v, (list, float)) else v) for k, v in r.items()}), flush=True)
+        print(json.dumps({k: (np.round(v, 4).tolist() if isinstance(v, (list, float)) else v) for k, v in r.items()
+                          if k not in ("x_star", "pixels", "u_pixels", "u_x_star", "centres", "rotvecs")}), flush=True)
     cat = lambda k: np.concatenate([np.atleast_1d(r[k]) for r in rows])
     rms = lambda a: float(np.sqrt(np.mean(np.square(a))))
     print(json.dumps({
