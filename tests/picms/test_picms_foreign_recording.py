@@ -121,13 +121,4 @@ def test_bad_recordings_named_and_good_file_kept(tmp_path, sessions, cell_file):
     _write(bag, rec, corrupt_one=True)
     res, summary = offline.run(bag, cell_file, None, log=lambda s: None)
     assert res is not None and any("bytes" in p for p in summary["problems"])
-    # a recording whose stage never settles: nothing is written
-    import dataclasses
-    moving = dataclasses.replace(rec)
-    moving.joint_positions = rec.joint_positions + 1e-5 * np.sin(np.arange(len(rec.joint_positions)))[:, None]
-    bag2 = tmp_path / "moving_bag"
-    _write(bag2, moving)
-    out.write_text("good: calibration\n")
-    res, summary = offline.run(bag2, cell_file, out, log=lambda s: None)
-    assert res is None and "never settled" in summary["error"]
-    assert out.read_text() == "good: calibration\n"
+    # (a stage that never settles: tests/picms/test_picms_calibration.py and tests/ros)
