@@ -8,8 +8,8 @@ returned is the PROJECTED SPHERE CENTRE, not the silhouette ellipse's centre: th
 are undistorted with the CameraInfo intrinsics into viewing rays, and a right circular cone
 (axis n, half angle alpha) is fitted to them; the sphere centre lies on the cone axis, so its
 image is the axis direction mapped back through the lens. Under true perspective the ellipse
-centre lies (1 + tan^2 alpha)-ish further out along the radial direction (tenths of a pixel a
-few millimetres off axis here); `ellipse_centre_px` reports it for comparison. Targeting must
+centre lies further out from the principal point than that image (0.1-0.5 px a few
+millimetres off axis here, measured in the tests); `ellipse_centre_px` reports it. Targeting must
 use the same point (the image of a 3-D point), which is what the cone axis gives.
 """
 from __future__ import annotations

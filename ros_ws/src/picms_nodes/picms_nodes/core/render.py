@@ -18,11 +18,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .camera import CameraPose, Intrinsics, undistort_normalised
+from .camera import CameraPose, Intrinsics
 from .cell import SMR_DIAMETER, Physics
 
-NEST_POST_RADIUS_FRACTION = 0.4
-_NOTE = 'see _edge_coverage'    # post radius / sphere radius
+NEST_POST_RADIUS_FRACTION = 0.4    # post radius / sphere radius
 NEST_POST_LENGTH_M = 0.025
 _VIGNETTE_CACHE: dict = {}
 
@@ -48,43 +47,6 @@ def _vignette(intr: Intrinsics, strength: float) -> np.ndarray:
         v = (1.0 - strength * r2 / r2max).astype(np.float32)
         _VIGNETTE_CACHE[key] = v
     return v
-
-
-def _interp_matrix(n: int, step: int) -> np.ndarray:
-    """(n, m) linear-interpolation weights from a grid at 0, step, 2 step, ... to 0..n-1."""
-    m = (n - 1) // step + 2
-    t = np.arange(n) / step
-    i = np.minimum(np.floor(t).astype(int), m - 2)
-    f = t - i
-    W = np.zeros((n, m))
-    W[np.arange(n), i] = 1 - f
-    W[np.arange(n), i + 1] = f
-    return W
-
-
-def _undistort_grid(intr: Intrinsics, x0: int, y0: int, w: int, h: int, step: int = 8):
-    """Normalised undistorted coordinates (h, w) of the pixel grid [x0, x0+w) x [y0, y0+h).
-
-    The distortion correction is smooth: it is solved exactly on a grid every `step` px and
-    interpolated bilinearly (error below 1e-4 px for these lenses).
-    """
-    K = intr.K
-    def lin(xp, yp):
-        yd = (yp - K[1, 2]) / K[1, 1]
-        return (xp - K[0, 2] - K[0, 1] * yd) / K[0, 0], yd
-    xs = x0 + np.arange(w, dtype=np.float64)
-    ys = y0 + np.arange(h, dtype=np.float64)
-    xd, yd = lin(xs[None, :], ys[:, None])
-    xd, yd = np.broadcast_arrays(xd, yd)
-    if not np.any(intr.D):
-        return xd.copy(), yd.copy()
-    mx = (w - 1) // step + 2
-    my = (h - 1) // step + 2
-    gx, gy = lin((x0 + step * np.arange(mx, dtype=np.float64))[None, :], (y0 + step * np.arange(my, dtype=np.float64))[:, None])
-    gx, gy = np.broadcast_arrays(gx, gy)
-    ux, uy = undistort_normalised(intr.D, gx, gy, 8)
-    Wy, Wx = _interp_matrix(h, step), _interp_matrix(w, step)
-    return xd + Wy @ (ux - gx) @ Wx.T, yd + Wy @ (uy - gy) @ Wx.T
 
 
 def _roi(intr, pose, points, pad_px):
