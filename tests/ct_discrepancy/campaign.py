@@ -51,7 +51,7 @@ def effect_settings(name: str, scale: float, duration_s: float, rng) -> tuple:
         return {"focal_spot_drift_m_per_s": (d * c / duration_s, d * s / duration_s, 0.0)}, name, d * 1e6
     if name == "detector_bow":                         # 0.5 px at the corner: sag 0.72 mm at the corner
         sag = 0.72e-3 * scale
-        return {"effects": (fx.DetectorBow(sag_x_m=sag, sag_y_m=0.0, distance_m=SDD),)}, name, sag * 1e3
+        return {"effects": (fx.DetectorBow(sag_x_m=sag, sag_y_m=0.0),)}, name, sag * 1e3
     if name == "encoder_eccentricity":                 # 10 arcsec
         a = 10 * ARCSEC * scale
         return {"encoder_eccentricity_rad": a, "encoder_phase_rad": ph}, name, 10 * scale

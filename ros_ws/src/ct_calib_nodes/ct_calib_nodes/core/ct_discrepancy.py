@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .ct_model import StaticKernel
-from .discrepancy import Candidate, Dataset, analyse, sigma_from_chi2
+from .discrepancy import BIC_THRESHOLD, Candidate, Dataset, _orth, analyse, locate, sigma_from_chi2
 from .geometry import STATIC_PARAM_NAMES, DetectorSpec, static_to_detector_frame
 from .observations import CentreObservations
 
@@ -88,7 +88,11 @@ def _t_tilt(th, st):
 
 
 def _t_stage_drift(th, st):
-    st.C = st.C + np.outer(st.tau, th[:3])
+    st.C = st.C + np.outer(st.tau, [th[0], th[1], 0.0])
+
+
+def _t_stage_drift_axial(th, st):
+    st.C = st.C + np.outer(st.tau, [0.0, 0.0, th[0]])
 
 
 def _t_expansion(th, st):
@@ -143,6 +147,7 @@ class CtTerm:
     reveal_by: str
     fn: object
     needs_time: bool = False
+    plausible_max: float = np.inf      # [display unit] larger fitted values are not this physics
 
 
 CATALOGUE = (
@@ -164,8 +169,14 @@ CATALOGUE = (
            "fiducial fixed to the detector", _t_detector_drift, True),
     CtTerm("stage_drift", "stage drift during the scan",
            "the rotary stage and object creep (thermal drift of the axes), moving the object linearly in time",
-           "object", ("dX_scan", "dY_scan", "dZ_scan"), ("m", "m", "m"), (2e-6, 2e-6, 5e-6), "um", 1e6,
-           "a longer scan or a repeated first projection at the end", _t_stage_drift, True),
+           "object", ("dX_scan", "dY_scan"), ("m", "m"), (2e-6, 2e-6), "um", 1e6,
+           "a longer scan or a repeated first projection at the end; a shift of the source instead moves each shadow "
+           "by (1 - M) rather than M times, so spheres spread in depth separate the two", _t_stage_drift, True, 500.0),
+    CtTerm("stage_drift_axial", "stage drift along the beam during the scan",
+           "the object creeps towards or away from the source, changing the magnification with time",
+           "object", ("dZ_scan",), ("m",), (5e-6,), "um", 1e6,
+           "a longer scan; a temperature log (separates it from thermal expansion of the object)",
+           _t_stage_drift_axial, True, 2000.0),
     CtTerm("object_thermal_expansion", "thermal expansion of the object during the scan",
            "the reference object warms or cools during the scan, its sphere distances growing in time (a constant "
            "scale is degenerate with z_R and needs a temperature reading)", "object",
@@ -205,7 +216,8 @@ CATALOGUE = (
     CtTerm("ellipse_centre_bias", "ellipse-centre bias unlike the model",
            "the detected centre lies c (b/D)^2 further from the principal point than the ellipse-centre model says "
            "(c = -1: the detector reports centre projections, not ellipse centres)", "ellipse", ("c",), ("1",),
-           (0.5,), "1", 1.0, "large spheres close to the source, far from the principal point", _t_ellipse),
+           (0.5,), "1", 1.0, "large spheres close to the source, far from the principal point", _t_ellipse,
+           False, 3.0),
 )
 CATALOGUE_BY_ID = {t.id: t for t in CATALOGUE}
 
@@ -312,7 +324,10 @@ def build_dataset(obs: CentreObservations, static, detector: DetectorSpec, n_fol
     # axes that can carry physics
     alpha = obs.alpha_rad
     tau, span = scan_time(obs)
-    u_m, v_m = detector.metric_from_pixels(obs.uv_px[:, 0], obs.uv_px[:, 1])
+    # detector position from the MODELLED centres: a basis built from the noisy observed ones would correlate
+    # with the noise it is meant to test
+    mod = obs.uv_px + np.stack([f[:q], f[q:]], axis=1)
+    u_m, v_m = detector.metric_from_pixels(mod[:, 0], mod[:, 1])
     half = max(detector.cols, detector.rows) * detector.pixel_pitch_m / 2.0
     xn, yn = u_m / half, v_m / half
     geom = static_to_detector_frame(x, centres)
@@ -352,7 +367,8 @@ def catalogue_candidates(obs, static, detector, span_s: float):
         if t.needs_time and span_s <= 0:
             b = np.zeros_like(b)
         out.append(Candidate(t.id, t.name, t.mechanism, t.param_names, t.param_units, b, t.display_unit,
-                             np.full(len(t.param_names), t.display_factor), t.reveal_by))
+                             np.full(len(t.param_names), t.display_factor), t.reveal_by,
+                             plausible_max=t.plausible_max))
     return out
 
 
@@ -396,7 +412,7 @@ def refit(obs, static, detector, chosen: list, ds: Dataset, ctx, beta0, iteratio
             th[c] = th[c] + step[k:k + p]
             k += p
     r = _blocked(obs.uv_px - predict_px(x, obs, centres, detector, th))
-    return x, th, cov, r
+    return x, th, cov, r, xr
 
 
 # --------------------------------------------------------------------------- the analysis
@@ -415,9 +431,13 @@ def run(obs: CentreObservations, static, detector: DetectorSpec, *, progress=Non
     ctx = res["context"]
     chosen = res["chosen"]
     by_id = {c.id: c for c in cands}
-    x_after, th_after, cov_after, r_after = (static.x[:13], {}, None, ds.residual)
+    x_after, th_after, cov_after, r_after, design = (static.x[:13], {}, None, ds.residual, ds.jac)
     if chosen:
-        x_after, th_after, cov_after, r_after = refit(obs, static, detector, chosen, ds, ctx, res["beta"])
+        x_after, th_after, cov_after, r_after, design = refit(obs, static, detector, chosen, ds, ctx, res["beta"])
+        # structure left after the exact refit (the engine's linearised 'unexplained' is replaced)
+        q_after, _ = _orth(ctx.wh(design))
+        res["unexplained"] = [e for e in locate(ctx, q_after, ds.empirical, ctx.wh(r_after))
+                              if e["delta_bic"] >= BIC_THRESHOLD]
     findings = []
     k = 13
     for f in res["findings"]:
@@ -428,13 +448,15 @@ def run(obs: CentreObservations, static, detector: DetectorSpec, *, progress=Non
         k += p
         u = np.sqrt(np.maximum(np.diag(ct), 0))
         mag = float(np.linalg.norm(th) * t.display_factor)
+        g = th / max(np.linalg.norm(th), 1e-300)                 # d |theta| / d theta
+        mag_u = float(np.sqrt(max(g @ ct @ g, 0.0)) * t.display_factor)
         sep = {t.reveal_by} | {CATALOGUE_BY_ID[d].reveal_by for d in f["degenerate_with"]}
         if f["correlated_nominal"]:
             sep.add("an independent reference for " + ", ".join(f["correlated_nominal"]))
         findings.append({
             "term": t.id, "name": t.name, "mechanism": t.mechanism,
             "significance_sigma": f["significance_sigma"], "delta_bic": f["delta_bic"], "cv_gain": f["cv_gain"],
-            "magnitude": mag, "magnitude_unit": t.display_unit,
+            "magnitude": mag, "magnitude_u": mag_u, "magnitude_unit": t.display_unit,
             "parameters": [{"name": n, "value": float(v), "u": float(uu), "unit": un}
                            for n, v, uu, un in zip(t.param_names, th, u, t.param_units)],
             "degenerate_with": list(f["degenerate_with"]),

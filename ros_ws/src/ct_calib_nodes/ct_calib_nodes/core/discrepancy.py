@@ -94,6 +94,7 @@ class Candidate:
     display_scale: np.ndarray
     reveal_by: str
     magnitude: object = None
+    plausible_max: float = np.inf     # largest physically plausible magnitude [magnitude_unit]
 
     def mag(self, theta):
         if self.magnitude is not None:
@@ -209,12 +210,15 @@ def required_noncentrality(crit: float, dof: int, power: float = LIMIT_POWER) ->
     return hi
 
 
-def _orth(a, rtol=1e-9):
-    """Orthonormal basis of the column space of a (n, k), and the rank-revealing singular values."""
+def _orth(a, rtol=1e-9, ref=None):
+    """Orthonormal basis of the column space of a (n, k), and the rank-revealing singular values.
+
+    Directions with singular values below ``rtol`` times ``ref`` (default the largest one; pass the norm of a
+    basis before projection so that what a model already absorbed is not resurrected by rounding) are dropped."""
     if a.shape[1] == 0:
         return a, np.zeros(0)
     u, s, _ = np.linalg.svd(a, full_matrices=False)
-    keep = s > rtol * max(s[0], 1e-300)
+    keep = s > rtol * max(s[0] if ref is None else ref, 1e-300)
     return u[:, keep], s
 
 
@@ -266,22 +270,28 @@ def make_context(ds: Dataset, floor: Floor | None = None) -> Context:
 def _test_block(ctx: Context, q_model, b_w):
     """Chi-square reduction of adding whitened basis b_w to the model with orthonormal basis q_model."""
     bp = _project_out(q_model, b_w)
-    qb, s = _orth(bp, 1e-7)
+    qb, s = _orth(bp, 1e-4, np.linalg.norm(b_w, 2) if b_w.size else 1.0)
     zp = _project_out(q_model, ctx.z)
     proj = qb.T @ zp
     return float(proj @ proj), qb.shape[1], bp
 
 
-def locate(ctx: Context, q_model, families: dict) -> list:
-    """Significance of each empirical family given the current model; list of dicts, most significant first."""
+def locate(ctx: Context, q_model, families: dict, z=None) -> list:
+    """Significance of each empirical family given the current model (orthonormal whitened basis q_model) and
+    whitened residual z (default: the nominal one); list of dicts, most significant first."""
     out = []
     ln_n = np.log(ctx.n)
+    z = ctx.z if z is None else z
+    zp = _project_out(q_model, z)
     for name, b in families.items():
         bw = ctx.wh(b)
-        d, k, bp = _test_block(ctx, q_model, bw)
+        bp = _project_out(q_model, bw)
+        qb, _ = _orth(bp, 1e-3, np.linalg.norm(bw, 2))
+        k = qb.shape[1]
         if k == 0:
             continue
-        zp = _project_out(q_model, ctx.z)
+        proj = qb.T @ zp
+        d = float(proj @ proj)
         coef = _fit(zp, bp)
         amp = b @ coef
         out.append({"axis": name, "dof": k, "delta_chi2": d, "significance_sigma": sigma_from_chi2(d, k),
@@ -312,7 +322,7 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
         f"{np.round(ctx.floor.tau, 4).tolist()} {ds.unit}; chi2/dof against it {before['chi2_dof']:.3f}")
     located = locate(ctx, q0, ds.empirical)
     # ---- name: greedy forward selection
-    chosen, findings = [], []
+    chosen, findings, implausible = [], [], []
     q_model = q0
     scores_first = None
     while len(chosen) < max_terms:
@@ -329,9 +339,20 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
         if not scores:
             break
         scores.sort(reverse=True)
-        best = scores[0]
-        if best[0] < bic_threshold:
+        # a term is a physical name only at a physically plausible magnitude
+        zp = _project_out(q_model, ctx.z)
+        best = None
+        for s_ in scores:
+            if s_[0] < bic_threshold:
+                break
+            th = _fit(zp, _project_out(q_model, cand_w[s_[3]]))
+            if by_id[s_[3]].mag(th) <= by_id[s_[3]].plausible_max:
+                best = s_
+                break
+            implausible.append({"term": s_[3], "delta_bic": s_[0], "magnitude": by_id[s_[3]].mag(th)})
+        if best is None:
             break
+        scores = [best] + [s_ for s_ in scores if s_ is not best]
         extra_w = [cand_w[i] for i in chosen + [best[3]]]
         extra_r = [by_id[i].basis for i in chosen + [best[3]]]
         prev_w = [cand_w[i] for i in chosen]
@@ -343,7 +364,7 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
         q_try, _ = _orth(np.hstack([q_model, cand_w[best[3]]]))
         degenerate = []
         for s in scores[1:]:
-            if s[0] >= best[0] - DEGENERATE_BIC and s[0] >= bic_threshold:
+            if s[0] >= best[0] - DEGENERATE_BIC and s[0] >= bic_threshold and s[3] not in {i["term"] for i in implausible}:
                 d2, k2, _ = _test_block(ctx, q_try, cand_w[s[3]])
                 if d2 - k2 * ln_n < bic_threshold:
                     degenerate.append(s[3])
@@ -404,4 +425,4 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
                         else float(scores_first[c.id][0])}
     return {"context": ctx, "floor": ctx.floor, "located": located, "findings": findings, "chosen": chosen,
             "beta": beta, "cov": cov, "before": before, "after": after, "unexplained": remaining,
-            "limits": limits, "n": ctx.n}
+            "limits": limits, "n": ctx.n, "implausible": implausible}

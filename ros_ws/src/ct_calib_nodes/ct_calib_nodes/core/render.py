@@ -392,8 +392,8 @@ def _truth_from_placed(ref, detector, settings, w, m, alpha, alpha_true, time_s,
     cp_m = project_df(src, centres_df, DetectorSpec(1, 1, 1.0))  # (col,row) about centre 0: x, -y
     cp_m = np.stack([cp_m[:, 0], -cp_m[:, 1]], axis=1)            # metric (x, y) in the plane
     ell_m, axes_m = silhouette_ellipses(src, centres_df, ref.radii_m)
-    rec_cp = render_effects.recorded_from_landing(settings.effects, distort(cp_m, k1))
-    rec_ell = (render_effects.recorded_from_landing(settings.effects, distort(ell_m, k1))
+    rec_cp = render_effects.recorded_from_landing(settings.effects, distort(cp_m, k1), src)
+    rec_ell = (render_effects.recorded_from_landing(settings.effects, distort(ell_m, k1), src)
                if settings.ellipse_centre_bias else rec_cp)
     centre_px = np.stack(detector.pixels_from_metric(rec_cp[:, 0], rec_cp[:, 1]), axis=1)
     ell_px = np.stack(detector.pixels_from_metric(rec_ell[:, 0], rec_ell[:, 1]), axis=1)
@@ -446,18 +446,18 @@ def frame_truth(static_w, motion, alpha_rad, ref: ReferenceObject, detector: Det
 # Rendering
 # --------------------------------------------------------------------------
 
-def _sample_points(detector, c0, c1, r0, r1, os, k1, effects=()):
+def _sample_points(detector, c0, c1, r0, r1, os, k1, effects=(), source_df_m=None):
     """Physical landing points x, y [m] in {DF} of the sub-samples of a pixel box."""
     sub = (np.arange(os) + 0.5) / os - 0.5
     cols = (np.arange(c0, c1 + 1)[:, None] + sub[None, :]).ravel()
     rows = (np.arange(r0, r1 + 1)[:, None] + sub[None, :]).ravel()
     x, y = detector.metric_from_pixels(cols[None, :], rows[:, None])
     x, y = np.broadcast_arrays(x, y)
+    if effects:   # recorded = effects(distort(landing)): undo the effects first
+        xy = render_effects.landing_from_recorded(effects, np.stack([x, y], axis=-1), source_df_m)
+        x, y = xy[..., 0], xy[..., 1]
     if k1 != 0.0:
         xy = undistort(np.stack([x, y], axis=-1), k1)
-        x, y = xy[..., 0], xy[..., 1]
-    if effects:
-        xy = render_effects.landing_from_recorded(effects, np.stack([x, y], axis=-1))
         x, y = xy[..., 0], xy[..., 1]
     return x, y                                  # each (H*os, W*os)
 
@@ -536,7 +536,7 @@ def render_projection_bruteforce(static_w, motion, alpha_rad, ref: ReferenceObje
     allj = np.arange(ref.n_spheres)
     for r0 in range(0, detector.rows, rows_per_chunk):
         r1 = min(r0 + rows_per_chunk, detector.rows) - 1
-        xs, ys = _sample_points(detector, 0, detector.cols - 1, r0, r1, os_, sc.k1, settings.effects)
+        xs, ys = _sample_points(detector, 0, detector.cols - 1, r0, r1, os_, sc.k1, settings.effects, sc.src)
         trans[r0:r1 + 1] = _block_mean(np.exp(-_line_integrals(sc, xs, ys, allj)), os_)
     n_rays = detector.rows * detector.cols * os_ * os_
     return _finish(trans, sc.truth, settings, rng, output, n_rays)
@@ -599,7 +599,7 @@ def render_projection(static_w, motion, alpha_rad, ref: ReferenceObject, detecto
         r1 = min(int(np.ceil(rr.max())) + 1, detector.rows - 1)
         if c0 <= c1 and r0 <= r1:
             tos = int(settings.tube_oversample)
-            xs, ys = _sample_points(detector, c0, c1, r0, r1, tos, k1, settings.effects)
+            xs, ys = _sample_points(detector, c0, c1, r0, r1, tos, k1, settings.effects, src)
             tt = np.exp(-_line_integrals(sc, xs, ys, []))
             n_rays += tt.size
             trans[r0:r1 + 1, c0:c1 + 1] = _block_mean(tt, tos) if tos > 1 else tt
@@ -621,7 +621,7 @@ def render_projection(static_w, motion, alpha_rad, ref: ReferenceObject, detecto
         c0, c1 = max(b[i, 0], 0), min(b[i, 1], detector.cols - 1)
         r0, r1 = max(b[i, 2], 0), min(b[i, 3], detector.rows - 1)
         members = np.nonzero((b[:, 0] <= c1) & (c0 <= b[:, 1]) & (b[:, 2] <= r1) & (r0 <= b[:, 3]))[0]
-        xs, ys = _sample_points(detector, c0, c1, r0, r1, os_, k1, settings.effects)
+        xs, ys = _sample_points(detector, c0, c1, r0, r1, os_, k1, settings.effects, src)
         line = _line_integrals(sc, xs, ys, members)
         n_rays += line.size
         trans[r0:r1 + 1, c0:c1 + 1] = _block_mean(np.exp(-line), os_)

@@ -11,9 +11,10 @@ the hooks below):
 * ``angle_delta(alpha)``: the true rotary angle is ``alpha + delta`` [rad];
 * ``place(scene, alpha, t)``: moves the placed scene in {DF} (focal spot,
   sphere centres, tube axis points) at acquisition time ``t`` [s];
-* ``landing_from_recorded(xy)`` / ``recorded_from_landing(xy)``: the map
-  between the point where a ray crosses the plane z = 0 and the position the
-  detector records it at (metric {DF}, from the detector centre).
+* ``landing_from_recorded(xy, source)`` / ``recorded_from_landing(xy, source)``:
+  the map between the point where a ray from the focal spot ``source`` (3,)
+  crosses the plane z = 0 and the position the detector records it at
+  (metric {DF}, from the detector centre).
 
 Time ``t`` is the renderer's ``time_s``. The drifts below are linear in time
 from ``t_ref_s``; give the scan duration so that ``total`` is the change over
@@ -55,10 +56,10 @@ class RenderEffect:
     def place(self, scene: Scene, alpha_rad: float, time_s: float) -> Scene:
         return scene
 
-    def landing_from_recorded(self, xy_m):
+    def landing_from_recorded(self, xy_m, source_df_m):
         return xy_m
 
-    def recorded_from_landing(self, xy_m):
+    def recorded_from_landing(self, xy_m, source_df_m):
         return xy_m
 
 
@@ -182,31 +183,33 @@ class DetectorDrift(RenderEffect):
 class DetectorBow(RenderEffect):
     """The panel is not flat: its surface lies ``h(x, y) = sag_x (x/X)^2 + sag_y (y/Y)^2`` behind the plane
     z = 0 (away from the source), X, Y the half width and height [m]. A ray is recorded where it meets the
-    surface, at in-plane position x_rec; it crossed z = 0 at ``x_rec D / (D + h(x_rec))`` with D the
-    source-to-detector distance (source on the normal through the detector centre; the principal point's
-    few-pixel offset changes the result by h P / D, below 1e-3 px here). A sag of 0.72 mm at the corner of a
-    410 mm panel at D = 1.05 m displaces the corner by 0.5 px (0.4 mm pixels)."""
+    surface, at in-plane position x_rec (exact: the pixel grid follows the surface, its arc length differs
+    from the in-plane distance by h'^2 / 2 ~ 1e-5 relative); it crossed z = 0 at
+    ``P + (x_rec - P) D / (D + h(x_rec))`` with P the principal point (the source's x, y) and D = -S_z. A sag
+    of 0.72 mm at the corner of a 410 mm panel at D = 1.05 m displaces the corner by about 0.5 px (0.4 mm
+    pixels)."""
 
     sag_x_m: float = 0.0
     sag_y_m: float = 0.0
     half_width_m: float = 0.2048
     half_height_m: float = 0.2048
-    distance_m: float = 1.05
     name = "detector_bow"
 
     def _h(self, xy):
         return (self.sag_x_m * (xy[..., 0] / self.half_width_m) ** 2
                 + self.sag_y_m * (xy[..., 1] / self.half_height_m) ** 2)
 
-    def landing_from_recorded(self, xy_m):
+    def landing_from_recorded(self, xy_m, source_df_m):
         xy = np.asarray(xy_m, dtype=float)
-        return xy * (self.distance_m / (self.distance_m + self._h(xy)))[..., None]
+        p, d = np.asarray(source_df_m[:2], dtype=float), -float(source_df_m[2])
+        return p + (xy - p) * (d / (d + self._h(xy)))[..., None]
 
-    def recorded_from_landing(self, xy_m):
+    def recorded_from_landing(self, xy_m, source_df_m):
         xy = np.asarray(xy_m, dtype=float)
+        p, d = np.asarray(source_df_m[:2], dtype=float), -float(source_df_m[2])
         rec = xy
-        for _ in range(6):
-            rec = xy * ((self.distance_m + self._h(rec)) / self.distance_m)[..., None]
+        for _ in range(8):
+            rec = p + (xy - p) * ((d + self._h(rec)) / d)[..., None]
         return rec
 
 
@@ -235,13 +238,13 @@ def place(effects, geom, centres_df, extra_df, alpha_rad: float, time_s: float):
     return replace(geom, source_df_m=sc.source_df_m), sc.centres_df_m, sc.extra_df_m
 
 
-def landing_from_recorded(effects, xy_m):
+def landing_from_recorded(effects, xy_m, source_df_m):
     for e in reversed(effects):
-        xy_m = e.landing_from_recorded(xy_m)
+        xy_m = e.landing_from_recorded(xy_m, source_df_m)
     return xy_m
 
 
-def recorded_from_landing(effects, xy_m):
+def recorded_from_landing(effects, xy_m, source_df_m):
     for e in effects:
-        xy_m = e.recorded_from_landing(xy_m)
+        xy_m = e.recorded_from_landing(xy_m, source_df_m)
     return xy_m
