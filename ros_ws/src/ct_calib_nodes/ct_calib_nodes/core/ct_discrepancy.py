@@ -422,12 +422,25 @@ def _fmt(v, unit):
 
 def run(obs: CentreObservations, static, detector: DetectorSpec, *, progress=None, max_terms: int = 4) -> dict:
     """The whole CT analysis; returns the discrepancy.json dict (plus private arrays under ``_arrays``)."""
+    import time  # noqa: PLC0415
+
     say = progress or (lambda _m: None)
+    clock = [time.perf_counter()]
+    timing = {}
+
+    def lap(name):
+        now = time.perf_counter()
+        timing[name] = now - clock[0]
+        clock[0] = now
+
     ds, ext = build_dataset(obs, static, detector)
+    lap("dataset_s")
     cands = catalogue_candidates(obs, static, detector, ext["span_s"])
+    lap("catalogue_bases_s")
     say(f"{obs.n_obs} centres in {obs.n_views} projections over {ext['span_s']:.1f} s; "
         f"{len(cands)} catalogue terms, {len(ds.empirical)} locate axes")
     res = analyse(ds, cands, max_terms=max_terms, progress=say)
+    lap("floor_locate_name_limits_s")
     ctx = res["context"]
     chosen = res["chosen"]
     by_id = {c.id: c for c in cands}
@@ -438,6 +451,7 @@ def run(obs: CentreObservations, static, detector: DetectorSpec, *, progress=Non
         q_after, _ = _orth(ctx.wh(design))
         res["unexplained"] = [e for e in locate(ctx, q_after, ds.empirical, ctx.wh(r_after))
                               if e["delta_bic"] >= BIC_THRESHOLD]
+    lap("refit_s")
     findings = []
     k = 13
     for f in res["findings"]:
@@ -531,6 +545,7 @@ def run(obs: CentreObservations, static, detector: DetectorSpec, *, progress=Non
         "catalogue": [{"id": t.id, "name": t.name, "mechanism": t.mechanism, "parameters": list(t.param_names),
                        "units": list(t.param_units), "magnitude_unit": t.display_unit, "reveal_by": t.reveal_by}
                       for t in CATALOGUE],
+        "engine_timing_s": timing,
         "n_observations": obs.n_obs, "n_projections": obs.n_views, "scan_duration_s": ext["span_s"],
         "_arrays": {"residual_before": ds.residual, "residual_after": r_after, "alpha": obs.alpha_rad,
                     "tau": ext["tau"], "uv": obs.uv_px},

@@ -40,6 +40,10 @@ Hidden physics (all off by default; the solvers are never told about them):
   model it (ct_model.py). False translates each shadow so that its ellipse
   centre coincides with the centre projection (the textbook model of the
   paper), for tests of that model only.
+- ``effects``: further hidden physics from render_effects.py (detector bow,
+  rotary runout and tilt error motions, stage and detector drift, thermal
+  expansion of the object, encoder harmonics), applied through small hooks on
+  the rotary angle, the placed scene and the detector's recorded position.
 """
 
 from __future__ import annotations
