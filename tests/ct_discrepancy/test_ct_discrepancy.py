@@ -13,7 +13,7 @@ import pytest
 from campaign import DET, EFFECTS, analyse_campaign, analyse_truth_campaign, truth_campaign
 from ct_calib_nodes.core import ct_discrepancy, render_effects as fx
 from ct_calib_nodes.core.ct_model import StaticKernel
-from ct_calib_nodes.core.discrepancy import Dataset, noise_floor
+from ct_calib_nodes.core.discrepancy import Dataset, Floor, Whitener, noise_floor
 from ct_calib_nodes.core.geometry import project_df
 from ct_calib_nodes.core.phantom import helix49
 from ct_calib_nodes.core.render import RenderSettings, frame_truth
@@ -152,3 +152,20 @@ def test_rendered_focal_spot_drift_is_found():
     assert top["term"] == "focal_spot_drift", out["verdict"]
     assert abs(top["magnitude"] / tr["magnitude"] - 1) < 0.15, top["magnitude"]
     assert out["fit_after"]["held_out_rms"] < 0.5 * out["fit_before"]["held_out_rms"]
+
+
+def test_whitener_inverts_the_floor_covariance():
+    rng = np.random.default_rng(2)
+    n_v, q = 5, 7
+    view = np.repeat(np.arange(n_v), q)
+    comp = np.repeat([0, 1], n_v * q)
+    sigma = rng.uniform(0.5, 2.0, 2 * n_v * q)
+    ds = Dataset(residual=np.zeros(2 * n_v * q), jac=np.zeros((2 * n_v * q, 0)), nominal_names=(), sigma=sigma,
+                 component=comp, group=np.concatenate([view, view]), neighbours=np.zeros((0, 2), int),
+                 fold=np.zeros(2 * n_v * q, int))
+    fl = Floor(factor=np.array([1.3, 0.8]), tau=np.array([0.7, 0.4]), sigma_median=1.0, n_pairs=0)
+    d = fl.factor[comp] * sigma
+    same = (ds.group[:, None] == ds.group[None, :]) & (comp[:, None] == comp[None, :])
+    cov = np.diag(d ** 2) + same * (fl.tau[comp][:, None] ** 2)
+    w = Whitener(ds, fl)(np.eye(cov.shape[0]))
+    assert np.allclose(w @ cov @ w.T, np.eye(cov.shape[0]), atol=1e-12)
