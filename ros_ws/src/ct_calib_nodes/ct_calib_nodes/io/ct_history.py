@@ -52,7 +52,8 @@ def ros_msg_bytes(result: dict, type_name: str) -> bytes | None:
 
 def geometry_record(res, *, cell: str, source: str, campaign_id=None, inputs=(), data_start_ns=None,
                     data_end_ns=None, final: bool = True, extra: dict | None = None) -> SolveRecord:
-    std = list(getattr(res, "std", []) or [])
+    std = getattr(res, "std", None)
+    std = [] if std is None else list(std)
     names, units, x = list(res.names), list(res.units), list(res.x)
     q = [Quantity(name=str(n), value=float(v), u=(float(std[i]) if i < len(std) else None), unit=str(u))
          for i, (n, u, v) in enumerate(zip(names, units, x))]
