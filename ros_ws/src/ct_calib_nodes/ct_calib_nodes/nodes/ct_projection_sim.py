@@ -94,8 +94,8 @@ class CtProjectionSim(Node):
         if p["reference_output"]:
             write_reference_error_map(p["reference_output"], self.truth)
         self.rng = np.random.default_rng(int(p["seed"]))
-        self.pub_img = self.create_publisher(Image, "/ct/detector/image", QOS_RELIABLE_STREAM)
-        self.pub_js = self.create_publisher(JointState, "/ct/stage/joint_states", QOS_RELIABLE_STREAM)
+        self.pub_img = self.create_publisher(Image, "ct/detector/image", QOS_RELIABLE_STREAM)
+        self.pub_js = self.create_publisher(JointState, "ct/stage/joint_states", QOS_RELIABLE_STREAM)
         n = int(p["projections_per_position"])
         if n < 1:
             raise ValueError("projections_per_position must be >= 1")

@@ -44,9 +44,9 @@ class CtSphereDetector(Node):
         self.images, self.stages = {}, {}     # stamp_ns -> (msg, arrival time)
         self.counts = {"frames": 0, "bad_frames": 0, "bad_stage": 0, "unpaired": 0, "published": 0}
         qos = QOS_RELIABLE_STREAM if p["reliable"] else qos_profile_sensor_data
-        self.pub = self.create_publisher(SphereObservationArray, "/ct/observations", QOS_RELIABLE_STREAM)
-        self.create_subscription(Image, "/ct/detector/image", self._on_image, qos)
-        self.create_subscription(JointState, "/ct/stage/joint_states", self._on_stage, qos)
+        self.pub = self.create_publisher(SphereObservationArray, "ct/observations", QOS_RELIABLE_STREAM)
+        self.create_subscription(Image, "ct/detector/image", self._on_image, qos)
+        self.create_subscription(JointState, "ct/stage/joint_states", self._on_stage, qos)
         self.create_timer(1.0, self._expire)
 
     def _on_image(self, msg):
