@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import base64
 import math
+import pathlib
 
 from ct_calib_nodes.io.history import Input, Quantity, SolveRecord
 
@@ -102,3 +103,58 @@ def finite(x) -> bool:
         return math.isfinite(float(x))
     except (TypeError, ValueError):
         return False
+
+
+def incomplete_positions(frames_per_position) -> str | None:
+    """A warning when stage positions hold different numbers of frames (a recorder that started late,
+    frames lost), else None."""
+    n = list(frames_per_position)
+    if len(n) < 2 or len(set(n)) == 1:
+        return None
+    full = max(n)
+    short = [(k + 1, m) for k, m in enumerate(n) if m < full]
+    return (f"incomplete stage positions: frames per position {n}; position(s) "
+            + ", ".join(f"{k} ({m} of {full})" for k, m in short)
+            + " lack frames (a recorder started late, or frames were lost)")
+
+
+def offline_records(res, *, recording, files: dict, cell: str, source: str = "offline", campaign_id=None,
+                    recording_hash: str | None = None) -> list:
+    """History records of an offline solve (offline.OfflineResult): the static geometry and the
+    travel-definition error maps, linked to the recording (path + content hash) and the YAML files;
+    the maps name the geometry they rest on (``upstream`` input, filled in by :func:`store_offline`)."""
+    rec_input = Input(role="recording", path=str(pathlib.Path(recording).resolve()), sha256=recording_hash)
+    if recording_hash is None:
+        rec_input = Input.file("recording", recording)
+    inputs = [rec_input] + yaml_inputs(files)
+    stamps = [t for p in res.acc.positions for t in p.stamps_ns] if res.acc is not None else []
+    t0, t1 = (min(stamps), max(stamps)) if stamps else (None, None)
+    campaign_id = campaign_id or (rec_input.sha256[:16] if rec_input.sha256 else None)
+    out = []
+    if res.static is not None:
+        p0 = res.acc.positions[0]
+        out.append(geometry_record(res.static, cell=cell, source=source, campaign_id=campaign_id, inputs=inputs,
+                                   data_start_ns=min(p0.stamps_ns), data_end_ns=max(p0.stamps_ns),
+                                   extra={"frames": p0.n_frames, "srd_reported_m": p0.srd_reported_m,
+                                          "problems": list(res.problems)}))
+    for mode, by_def in res.maps.items():
+        ks = res.map_positions[mode]
+        status, text = map_status({k: res.motions[mode][k] for k in ks[1:]})
+        out.append(error_map_record(by_def["travel"], mode, status=status, message=text, cell=cell, source=source,
+                                    campaign_id=campaign_id, inputs=list(inputs), data_start_ns=t0,
+                                    data_end_ns=t1, positions=ks))
+    return out
+
+
+def store_offline(history, records: list) -> list:
+    """Store the records of one offline solve; the maps get the geometry's uid as their upstream input."""
+    stored = []
+    geo = None
+    for r in records:
+        if r.kind == KIND_ERROR_MAP and geo is not None:
+            r.inputs.append(Input(role="upstream", ref_uid=geo.uid))
+        s = history.record(r)
+        if r.kind == KIND_GEOMETRY:
+            geo = s
+        stored.append(s)
+    return stored
