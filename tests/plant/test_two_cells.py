@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from metro_msgs.msg import CtGeometry, SolveStatus
 from ct_calib_nodes.io.history import History
 from ct_calib_nodes.io.mcap_io import iter_recording
@@ -35,6 +36,9 @@ def _instrument(path, c):
 def test_two_cells_one_domain_no_cross_talk(start_node, ros_node, tmp_path):
     db = tmp_path / "plant_history.sqlite"
     geoms = {name: [] for name in CELLS}
+    diags = {}
+    ros_node.create_subscription(DiagnosticArray, "/diagnostics",
+                                 lambda m: diags.update({st.name: st for st in m.status}), 50)
     for name in CELLS:
         ros_node.create_subscription(CtGeometry, f"/{name}/ct/geometry", geoms[name].append, QOS_LATCHED)
     nodes = {}
@@ -70,6 +74,15 @@ def test_two_cells_one_domain_no_cross_talk(start_node, ros_node, tmp_path):
         # at most every sphere of every frame of this cell (the solver's frame count is checked in the history)
         assert 0 < est.status.observations <= 2 * 49 * N_PROJ, name
         assert "skipped" not in nodes[name, "det"].log(), nodes[name, "det"].log()[-2000:]
+    # diagnostics: every node of both cells reports on /diagnostics under its full name
+    names = {f"/{c}/{n}" for c in CELLS for n in ("ct_sphere_detector", "ct_geometry_solver", "ct_projection_sim")}
+    assert ros_node.spin_until(lambda: names <= set(diags) and all(
+        diags[f"/{c}/ct_geometry_solver"].message == "calibration valid" for c in CELLS), timeout=10), \
+        {k: (v.level, v.message) for k, v in diags.items()}
+    for c in CELLS:
+        det = diags[f"/{c}/ct_sphere_detector"]
+        assert det.level == DiagnosticStatus.OK and det.hardware_id == f"/{c}", (det.level, det.message)
+        assert {kv.key: kv.value for kv in det.values}["frames"] == str(N_PROJ)
     za, zb = (geoms[n][-1].static_estimate.values[3] for n in CELLS)
     assert abs((zb - za) - (1.20 - 1.04821)) < 0.01          # each found its own detector distance
     nodes["rec"].stop()

@@ -29,6 +29,7 @@ setup(
             "ct_demo = ct_calib_nodes.nodes.ct_demo:main",
             "ct_offline_solve = ct_calib_nodes.offline:main",
             "ct_history = ct_calib_nodes.history_cli:main",
+            "ct_archive_solve = ct_calib_nodes.archive:main",
         ],
     },
 )

@@ -76,7 +76,8 @@ def recording_topics(path) -> dict:
 
 def find_namespace(path, namespace=None) -> str:
     """The namespace of the CT cell in a recording: the given one (checked), else the only one whose
-    raw image topic is present. ValueError naming the candidates when there are none or several."""
+    raw image topic is present ('/' when none is: the solve then reports what it could not find).
+    ValueError naming the candidates when there are several, or the given one is absent."""
     topics = recording_topics(path)
     suffix = "/" + CT_RAW[0]
     found = sorted(t[: -len(suffix)] or "/" for t in topics if t.endswith(suffix))
@@ -88,5 +89,5 @@ def find_namespace(path, namespace=None) -> str:
     if len(found) == 1:
         return found[0]
     if not found:
-        raise ValueError(f"the recording has no .../{CT_RAW[0]} topic (topics: {sorted(topics)[:10]})")
+        return "/"     # nothing of a CT cell readable (a stub, a foreign file): the solve says what it found
     raise ValueError(f"the recording holds several CT cells {found}: choose one with --namespace")

@@ -62,8 +62,11 @@ class CtErrorMotion(Node):
         self.create_timer(0.5, self._on_timer)
         self.history = plant.HistoryHook(self, str(self.p["history_db"]))
         self.valid = {m: None for m in MODES}         # mode -> the valid ErrorMap message published
+        self.valid_campaign = {}
         self.last_map_status, self.last_solve_t, self.stored_key = None, None, {}
         self.obs_rate = plant.RateMeter()
+        from ct_calib_nodes.io.campaign_guard import CampaignGuard  # noqa: PLC0415
+        self.guard = CampaignGuard(self.history.cell)
         for mode in MODES:
             rec, msg = self.history.latest_msg(KIND, ErrorMap, MSG_TYPE, mode=mode)
             if msg is not None:
@@ -85,6 +88,7 @@ class CtErrorMotion(Node):
                                     "error motions wait for a usable one")
             return
         self.static_msg = (w, cov, float(msg.static_estimate.status.rms_residual))
+        self.static_stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         self.static = self._rebuild_static()
         self.results = {m: {} for m in MODES}
         self.solved_frames = {m: {} for m in MODES}
@@ -102,6 +106,8 @@ class CtErrorMotion(Node):
 
     def _on_obs(self, msg):
         self.obs_rate.tick()
+        if self._refused(msg):
+            return
         k = self.intake.add(msg)
         if k is not None and k >= 2 and k == len(self.acc.positions) - 1 and self.acc.positions[k].n_frames == 1:
             self._solve_complete(final=False)      # position k-1 just completed
@@ -156,13 +162,19 @@ class CtErrorMotion(Node):
                                         index_repeatability_rad=self.instrument.index_repeatability_rad)
             motions = [estimate_msg(self.results[mode][k], f"ct_error_motion/{mode}", stamp) for k in ks[1:]]
             msg = error_map_msg(em, mode, motions, stamp)
+            # which geometry the map rests on, its campaign, and whether it is final (the message has no fields
+            # for these: notes every consumer reads)
+            msg.notes.append(f"geometry: ct/geometry stamp {self.static_stamp_ns} ns; campaign "
+                             f"{self.guard.campaign_id}; positions {len(ks)}; final: {'yes' if final else 'no (growing)'}")
             status, text = map_status({k: self.results[mode][k] for k in ks[1:]})
             if mode == "multi":
                 self.last_map_status, self.last_solve_t = (status, text), time.monotonic()
-            if status == "success" or self.valid[mode] is None:
+            if not final and self.valid[mode] is not None and self.valid_campaign.get(mode) == self.guard.campaign_id:
+                pass   # this campaign's final map is out: a re-solve never re-publishes a shorter, growing one
+            elif status == "success" or self.valid[mode] is None:
                 self.pubs[mode].publish(msg)
                 if status == "success" and final:
-                    self.valid[mode] = msg
+                    self.valid[mode], self.valid_campaign[mode] = msg, self.guard.campaign_id
             else:
                 self.get_logger().error(f"{mode} error map not usable ({text}): not published; the last valid map "
                                         "stays latched")
@@ -180,8 +192,11 @@ class CtErrorMotion(Node):
         files = {"instrument": self.p["instrument_file"] or ct_files.default_instrument_path(),
                  "reference_object": self.p["reference_object_file"] or ct_files.default_reference_object_path()}
         stamps = [t for p in self.acc.positions for t in p.stamps_ns]
+        from ct_calib_nodes.io.history import Input  # noqa: PLC0415
+        upstream = Input(role="upstream", path=self.resolve_topic_name("ct/geometry"),
+                         detail={"kind": "ct_geometry", "stamp_ns": self.static_stamp_ns})
         rec = error_map_record(em, mode, status=status, message=text, cell=self.history.cell, source="live",
-                               inputs=yaml_inputs(files), data_start_ns=min(stamps), data_end_ns=max(stamps),
+                               inputs=yaml_inputs(files) + [upstream], campaign_id=self.guard.campaign_id, data_start_ns=min(stamps), data_end_ns=max(stamps),
                                positions=ks)
         if self.history.store(rec, msg, MSG_TYPE) is not None:
             self.stored_key[mode] = key
@@ -193,15 +208,31 @@ class CtErrorMotion(Node):
                   "static geometry": "received" if self.static is not None else "waiting",
                   "last map": "none" if self.last_map_status is None else ": ".join(self.last_map_status),
                   "last solve age": plant.solve_age_text(self.last_solve_t),
-                  "valid map published": "yes" if self.valid["multi"] is not None else "no"}
+                  "valid map published": "yes" if self.valid["multi"] is not None else "no",
+                  "campaign": self.guard.campaign_id or "none", "refused (interleaved campaign)": self.guard.refused}
         if self.last_map_status is not None and self.last_map_status[0] != "success":
             return (plant.WARN if self.valid["multi"] is not None else plant.ERROR,
                     f"last error map not usable: {self.last_map_status[1]}", values)
         if self.static is None:
             return plant.WARN, "waiting for a usable static geometry", values
-        if self.intake.bad_messages:
-            return plant.WARN, f"{self.intake.bad_messages} bad message(s) skipped", values
+        if self.intake.bad_messages or self.guard.refused:
+            return plant.WARN, (f"{self.intake.bad_messages} bad message(s) skipped, {self.guard.refused} refused "
+                                "as another campaign"), values
         return plant.OK, "running", values
+
+    def _refused(self, msg) -> bool:
+        """Observations of another campaign interleaved with this one: refused, counted, logged."""
+        from ct_calib_nodes.io.convert import stamp_ns  # noqa: PLC0415
+
+        try:
+            why = self.guard.check(stamp_ns(msg.header.stamp), msg.srd_reported_m, msg.rotary_angle_rad)
+        except (TypeError, ValueError):
+            return False           # the intake names what is wrong with the message
+        if why is not None:
+            if self.guard.refused <= 5 or self.guard.refused % 50 == 0:
+                self.get_logger().error(f"refused observations #{self.guard.refused}: {why}")
+            return True
+        return False
 
     def close(self):
         self.history.close()

@@ -64,6 +64,8 @@ class CtGeometrySolver(Node):
         self.history = plant.HistoryHook(self, str(self.p["history_db"]))
         self.valid_msg, self.last_status, self.last_solve_t = None, None, None
         self.obs_rate = plant.RateMeter()
+        from ct_calib_nodes.io.campaign_guard import CampaignGuard  # noqa: PLC0415
+        self.guard = CampaignGuard(self.history.cell)
         rec, msg = self.history.latest_msg(KIND, CtGeometry, MSG_TYPE)
         if msg is not None:      # a late subscriber or a restart never sees "no calibration"
             self.valid_msg = msg
@@ -76,6 +78,8 @@ class CtGeometrySolver(Node):
 
     def _on_obs(self, msg):
         self.obs_rate.tick()
+        if self._refused(msg):
+            return
         k = self.intake.add(msg)
         if k is not None and k >= 1 and self.result is None:
             self._solve("the stage moved to position 2")
@@ -125,6 +129,7 @@ class CtGeometrySolver(Node):
         topic = self.resolve_topic_name("ct/observations")
         inputs = yaml_inputs(files) + [plant_input_topic(topic, p0)]
         rec = geometry_record(res, cell=self.history.cell, source="live", inputs=inputs,
+                              campaign_id=self.guard.campaign_id,
                               data_start_ns=min(p0.stamps_ns), data_end_ns=max(p0.stamps_ns),
                               extra={"frames": p0.n_frames, "srd_reported_m": p0.srd_reported_m})
         self.history.store(rec, msg, MSG_TYPE)
@@ -136,16 +141,32 @@ class CtGeometrySolver(Node):
                   "last solve": "none" if self.last_status is None else
                   f"{STATUS_NAMES.get(self.last_status.code, self.last_status.code)}: {self.last_status.message}",
                   "last solve age": plant.solve_age_text(self.last_solve_t),
-                  "valid calibration published": "yes" if self.valid_msg is not None else "no"}
+                  "valid calibration published": "yes" if self.valid_msg is not None else "no",
+                  "campaign": self.guard.campaign_id or "none", "refused (interleaved campaign)": self.guard.refused}
         if self.last_status is not None and self.last_status.code != 0:
             lvl = plant.WARN if self.valid_msg is not None else plant.ERROR
             return lvl, ("last solve not usable; the previous valid calibration stays published"
                          if self.valid_msg is not None else "no usable calibration: last solve failed"), values
         if self.valid_msg is None:
             return plant.WARN, "no calibration yet: waiting for observations", values
-        if self.intake.bad_messages:
-            return plant.WARN, f"calibration valid; {self.intake.bad_messages} bad observation message(s) skipped", values
+        if self.intake.bad_messages or self.guard.refused:
+            return plant.WARN, (f"calibration valid; {self.intake.bad_messages} bad observation message(s) skipped, "
+                                f"{self.guard.refused} refused as another campaign"), values
         return plant.OK, "calibration valid", values
+
+    def _refused(self, msg) -> bool:
+        """Observations of another campaign interleaved with this one: refused, counted, logged."""
+        from ct_calib_nodes.io.convert import stamp_ns  # noqa: PLC0415
+
+        try:
+            why = self.guard.check(stamp_ns(msg.header.stamp), msg.srd_reported_m, msg.rotary_angle_rad)
+        except (TypeError, ValueError):
+            return False           # the intake names what is wrong with the message
+        if why is not None:
+            if self.guard.refused <= 5 or self.guard.refused % 50 == 0:
+                self.get_logger().error(f"refused observations #{self.guard.refused}: {why}")
+            return True
+        return False
 
     def close(self):
         self.history.close()
