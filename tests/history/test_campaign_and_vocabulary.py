@@ -17,19 +17,36 @@ def test_guard_accepts_one_campaign_in_any_stamp_order_within_a_position():
     for k, srd in enumerate((0.364, 0.436, 0.508)):
         for j in (2, 0, 3, 1):                       # DDS repairs reorder frames of a position
             assert g.check(1000 * k + j, srd, alphas[j]) is None
+            g.accept(1000 * k + j, srd, alphas[j])
     assert g.refused == 0 and g.campaign_id == "/cell_a@0"
 
 
 def test_guard_refuses_interleaved_and_non_monotonic():
     g = CampaignGuard()
-    assert g.check(1, 0.364, 0.0) is None
-    assert g.check(2, 0.364, 0.5) is None
-    assert "second frame at rotary angle" in g.check(3, 0.364, 0.0)      # another cell at the same position
-    assert g.check(4, 0.436, 0.0) is None
-    assert "returns to position 1" in g.check(5, 0.364, 1.0)            # back to a position already left
-    assert g.check(6, 0.508, 0.0) is None
-    assert "reverses the direction" in g.check(7, 0.470, 0.0)
+
+    def take(t, srd, a):
+        why = g.check(t, srd, a)
+        if why is None:
+            g.accept(t, srd, a)
+        return why
+
+    assert take(1, 0.364, 0.0) is None
+    assert take(2, 0.364, 0.5) is None
+    assert "second frame at rotary angle" in take(3, 0.364, 0.0)      # another cell at the same position
+    assert take(4, 0.436, 0.0) is None
+    assert "returns to position 1" in take(5, 0.364, 1.0)            # back to a position already left
+    assert take(6, 0.508, 0.0) is None
+    assert "reverses the direction" in take(7, 0.470, 0.0)
     assert g.refused == 3
+
+
+def test_guard_check_alone_records_nothing():
+    """A message the node refuses for another reason (bad values) must not block its valid repetition."""
+    g = CampaignGuard()
+    assert g.check(1, 0.364, 0.0) is None          # checked, then refused by the intake: not accepted
+    assert g.check(2, 0.364, 0.0) is None
+    g.accept(2, 0.364, 0.0)
+    assert g.check(3, 0.364, 0.0) is not None
 
 
 def test_incomplete_positions_named():

@@ -72,7 +72,8 @@ def test_restart_republishes_latest_valid_and_failures_never_replace_it(start_no
     assert got, node.log()
     assert list(got[-1].static_estimate.values) == list(g1.static_estimate.values)
     assert got[-1].header.stamp == g1.header.stamp and got[-1].static_estimate.covariance == g1.static_estimate.covariance
-    assert "re-published the latest valid calibration of cell /" in node.log()
+    assert ros_node.spin_until(lambda: "re-published the latest valid calibration of cell /" in node.log(),
+                               timeout=10), node.log()
 
     # 3. a campaign whose solve is not usable (sphere identities scrambled): not published, not latest valid
     bad = []

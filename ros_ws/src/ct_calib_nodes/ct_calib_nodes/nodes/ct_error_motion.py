@@ -109,6 +109,8 @@ class CtErrorMotion(Node):
         if self._refused(msg):
             return
         k = self.intake.add(msg)
+        if k is not None:
+            self._accepted(msg)
         if k is not None and k >= 2 and k == len(self.acc.positions) - 1 and self.acc.positions[k].n_frames == 1:
             self._solve_complete(final=False)      # position k-1 just completed
 
@@ -233,6 +235,11 @@ class CtErrorMotion(Node):
                 self.get_logger().error(f"refused observations #{self.guard.refused}: {why}")
             return True
         return False
+
+    def _accepted(self, msg):
+        from ct_calib_nodes.io.convert import stamp_ns  # noqa: PLC0415
+
+        self.guard.accept(stamp_ns(msg.header.stamp), msg.srd_reported_m, msg.rotary_angle_rad)
 
     def close(self):
         self.history.close()

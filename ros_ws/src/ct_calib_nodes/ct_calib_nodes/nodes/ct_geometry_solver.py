@@ -81,6 +81,8 @@ class CtGeometrySolver(Node):
         if self._refused(msg):
             return
         k = self.intake.add(msg)
+        if k is not None:
+            self._accepted(msg)
         if k is not None and k >= 1 and self.result is None:
             self._solve("the stage moved to position 2")
 
@@ -167,6 +169,11 @@ class CtGeometrySolver(Node):
                 self.get_logger().error(f"refused observations #{self.guard.refused}: {why}")
             return True
         return False
+
+    def _accepted(self, msg):
+        from ct_calib_nodes.io.convert import stamp_ns  # noqa: PLC0415
+
+        self.guard.accept(stamp_ns(msg.header.stamp), msg.srd_reported_m, msg.rotary_angle_rad)
 
     def close(self):
         self.history.close()
