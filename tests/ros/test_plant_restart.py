@@ -105,3 +105,24 @@ def test_restart_republishes_latest_valid_and_failures_never_replace_it(start_no
     node = start_node("ct_calib_nodes", "ct_geometry_solver", *args, name="solver3")
     got = _latched(ros_node)
     assert list(got[-1].static_estimate.values) == list(g1.static_estimate.values), node.log()
+
+
+def test_interleaved_campaign_refused_not_merged(start_node, ros_node):
+    """A second campaign at the same stage position (the frames of another cell on the same topics) is
+    refused and counted; the solve uses the first campaign's frames only."""
+    instrument = ct_files.load_instrument(ct_files.default_instrument_path())
+    ref = ct_files.load_reference_object(ct_files.default_reference_object_path())
+    node = start_node("ct_calib_nodes", "ct_geometry_solver", "--ros-args", "-p", "idle_solve_s:=0.0")
+    alphas = 2 * np.pi * np.arange(12) / 12
+    uv = forward_srf(default_static_truth(), ref.centres_of_m, alphas, instrument.detector)
+    rng = np.random.default_rng(4)
+    frames = [_observations_msg(100 + j, float(a), 0.364, ref.ids, uv[j] + rng.normal(0, 0.05, uv[j].shape))
+              for j, a in enumerate(alphas)]
+    other = [_observations_msg(500 + j, float(a), 0.364, ref.ids, uv[j] + 3.0) for j, a in enumerate(alphas)]
+    _feed(ros_node, frames + other)
+    r = _call(ros_node, node)
+    assert r.accepted and r.result.status.code == SolveStatus.SUCCESS, r.result.status.message
+    assert r.result.status.observations == 2 * 12 * 49          # the first campaign only
+    assert ros_node.spin_until(lambda: "refused observations #12" in node.log() or
+                               node.log().count("refused observations") >= 5, timeout=10), node.log()[-2000:]
+    assert "second frame at rotary angle" in node.log()
