@@ -67,8 +67,12 @@ class OfflineResult:
 
 
 def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: str = "linear",
-                    progress=None) -> OfflineResult:
-    """Replay a recording through detection, identity and the solvers (no files written)."""
+                    progress=None, namespace: str = "/") -> OfflineResult:
+    """Replay a recording through detection, identity and the solvers (no files written).
+    ``namespace``: the cell's namespace in the recording (its raw topics are ``<ns>/ct/...``)."""
+    from ct_calib_nodes.io import namespaces  # noqa: PLC0415
+
+    image_topic, stage_topic = (namespaces.topic(namespace, t) for t in namespaces.CT_RAW)
     say = progress or (lambda _m: None)
     out = OfflineResult(read_report=ReadReport(), acc=CampaignAccumulator())
     counts = {"images": 0, "stage_readings": 0, "frames": 0, "bad_frames": 0, "bad_stage": 0, "unpaired": 0}
@@ -106,9 +110,9 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
             rate = counts["frames"] / max(time.monotonic() - t0, 1e-9)
             say(f"{counts['frames']} frames ({rate:.1f}/s), {len(out.acc.positions)} stage position(s)")
 
-    for m in iter_recording(recording, topics=(IMAGE, STAGE), report=out.read_report):
+    for m in iter_recording(recording, topics=(image_topic, stage_topic), report=out.read_report):
         t = stamp_ns(m.msg.header.stamp)
-        if m.topic == IMAGE:
+        if m.topic == image_topic:
             counts["images"] += 1
             images[t] = m.msg
         else:
@@ -123,6 +127,10 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
     out.problems += out.read_report.errors
     say(f"{counts['frames']} frames in {time.monotonic() - t0:.1f} s; "
         f"observations per position {[p.n_obs for p in out.acc.positions]}")
+    from ct_calib_nodes.io.ct_history import incomplete_positions  # noqa: PLC0415
+    warn = incomplete_positions(p.n_frames for p in out.acc.positions)
+    if warn:
+        out.problems.append(warn)
     if not out.acc.positions or out.acc.positions[0].n_frames < 3:
         out.problems.append("fewer than 3 usable frames at the first stage position: nothing to solve")
         return out
@@ -178,8 +186,10 @@ def _result_dict(res, instrument, ref, recording, files) -> dict:
     return d
 
 
-def _write_result_mcap(path, res, instrument):
-    """The result topics, as the live graph publishes them."""
+def _write_result_mcap(path, res, instrument, namespace: str = "/"):
+    """The result topics, as the live graph publishes them (in the cell's namespace)."""
+    from ct_calib_nodes.io.namespaces import topic as ns_topic  # noqa: PLC0415
+
     from builtin_interfaces.msg import Time  # noqa: PLC0415
 
     from ct_calib_nodes.io.mcap_io import QOS_RELIABLE_LATCHED, Rosbag2McapWriter  # noqa: PLC0415
@@ -191,14 +201,15 @@ def _write_result_mcap(path, res, instrument):
 
     last = max(fr.stamp_ns for fr in res.frames)
     with Rosbag2McapWriter(path) as w:
-        w.add_topic("/ct/observations", "metro_msgs/msg/SphereObservationArray")
+        w.add_topic(ns_topic(namespace, "ct/observations"), "metro_msgs/msg/SphereObservationArray")
         for fr in res.frames:
-            w.write("/ct/observations", observation_array_msg(fr, stamp(fr.stamp_ns), instrument.detector), fr.stamp_ns)
-        w.add_topic("/ct/geometry", "metro_msgs/msg/CtGeometry", QOS_RELIABLE_LATCHED)
+            w.write(ns_topic(namespace, "ct/observations"), observation_array_msg(fr, stamp(fr.stamp_ns), instrument.detector), fr.stamp_ns)
+        w.add_topic(ns_topic(namespace, "ct/geometry"), "metro_msgs/msg/CtGeometry", QOS_RELIABLE_LATCHED)
         p0 = res.acc.positions[0]
-        w.write("/ct/geometry", geometry_msg(res.static, p0.srd_reported_m, instrument.sdd_reported_m,
+        w.write(ns_topic(namespace, "ct/geometry"), geometry_msg(res.static, p0.srd_reported_m, instrument.sdd_reported_m,
                                              instrument.detector, stamp(last), n_rejected=p0.n_rejected), last)
-        for mode, topic in (("multi", "/ct/error_map"), ("single", "/ct/error_map/single")):
+        for mode, topic in (("multi", ns_topic(namespace, "ct/error_map")),
+                            ("single", ns_topic(namespace, "ct/error_map/single"))):
             if mode not in res.maps:
                 continue
             em, ks = res.maps[mode]["travel"], res.map_positions[mode]
@@ -207,7 +218,8 @@ def _write_result_mcap(path, res, instrument):
             w.write(topic, error_map_msg(em, mode, motions, stamp(last)), last)
 
 
-def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files, reference_path=None):
+def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files, reference_path=None,
+                  namespace: str = "/"):
     """Write everything into a temporary directory, then move each file into out_dir."""
     from ct_calib_nodes.core.ct_pipeline import campaign_residuals  # noqa: PLC0415
     from ct_calib_nodes.io.campaign_outputs import write_report_and_export  # noqa: PLC0415
@@ -218,7 +230,7 @@ def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files
     tmp = pathlib.Path(tempfile.mkdtemp(prefix=".partial_", dir=out_dir))
     try:
         write_json_atomic(tmp / "results.json", _result_dict(res, instrument, ref, recording, files))
-        _write_result_mcap(tmp / "results.mcap", res, instrument)
+        _write_result_mcap(tmp / "results.mcap", res, instrument, namespace)
         if "multi" in res.maps:
             series = [res.maps[mode]["travel"] for mode in MODES if mode in res.maps] + [res.maps["multi"]["detector"]]
             em, ks = res.maps["multi"]["travel"], res.map_positions["multi"]
@@ -256,6 +268,28 @@ def _find_file(given, recording: pathlib.Path, name: str, default):
     return default(), "package default (no file beside the recording)"
 
 
+def _store_history(db, res, rec, files, namespace, source="offline"):
+    """Every offline solve (usable or not) goes into the calibration history; a history that cannot be
+    written is reported, the results are still written."""
+    from ct_calib_nodes.io.ct_history import offline_records, store_offline  # noqa: PLC0415
+    from ct_calib_nodes.io.history import open_history  # noqa: PLC0415
+
+    if res.static is None:
+        return []
+    h = open_history(db or None, logger=lambda m: print(f"[offline] {m}"))
+    if h is None:
+        return []
+    try:
+        stored = store_offline(h, offline_records(res, recording=rec, files=files, cell=namespace, source=source))
+        print(f"[offline] history {h.path}: solve(s) {[s.id for s in stored]} (cell {namespace})")
+        return stored
+    except Exception as exc:  # noqa: BLE001
+        print(f"[offline] calibration history not recorded: {exc}")
+        return []
+    finally:
+        h.close()
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
@@ -266,6 +300,10 @@ def main(argv=None) -> int:
     ap.add_argument("--out", help="output directory (default <recording>_calibration)")
     ap.add_argument("--init-frames", type=int, default=6, help="frames used to initialise sphere identity")
     ap.add_argument("--loss", default="linear", help="least-squares loss: linear, huber, soft_l1, cauchy, arctan")
+    ap.add_argument("--namespace", help="the CT cell's namespace in the recording (e.g. /cell_a); default: the only "
+                                        "one whose <ns>/ct/detector/image is in it")
+    ap.add_argument("--history", default="", help="calibration history database (default $METRO_HISTORY_DB or "
+                                                  "~/.local/share/metro_cell/history.sqlite; none = do not record)")
     args = ap.parse_args(argv)
     rec = pathlib.Path(args.recording)
     if not rec.exists():
@@ -280,21 +318,30 @@ def main(argv=None) -> int:
     except ct_files.CtFileError as exc:
         print(f"ct_offline_solve: {exc}", file=sys.stderr)
         return 2
+    from ct_calib_nodes.io import namespaces  # noqa: PLC0415
+    try:
+        namespace = namespaces.find_namespace(rec, args.namespace)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"ct_offline_solve: {exc}", file=sys.stderr)
+        return 2
     print(f"[offline] instrument file {inst_path} ({how_i}); reference object {ref_path} ({how_r})")
+    if namespace != "/":
+        print(f"[offline] CT cell namespace {namespace}")
     print(f"[offline] {thermal_note}")
     out_dir = pathlib.Path(args.out) if args.out else rec.parent / f"{rec.stem}_calibration"
     res = solve_recording(rec, instrument, ref, init_frames=args.init_frames, loss=args.loss,
-                          progress=lambda m: print(f"[offline] {m}", flush=True))
+                          progress=lambda m: print(f"[offline] {m}", flush=True), namespace=namespace)
     res.notes.append(thermal_note)
     for p in res.problems[:20]:
         print(f"[offline] problem: {p}")
     if len(res.problems) > 20:
         print(f"[offline] ... and {len(res.problems) - 20} more problems (all in results.json)")
+    _store_history(args.history, res, rec, {"instrument": inst_path, "reference_object": ref_path}, namespace)
     if res.static is None or not res.static.success:
         print("[offline] nothing usable: no results written")
         return 1
     write_outputs(out_dir, res, instrument, ref, rec, {"instrument": inst_path, "reference_object": ref_path},
-                  reference_path=args.reference_error_map)
+                  reference_path=args.reference_error_map, namespace=namespace)
     print(f"[offline] results: {out_dir / 'results.json'}; report: {out_dir / 'report' / 'index.html'}")
     return 0
 

@@ -44,16 +44,22 @@ class CtSphereDetector(Node):
         self.images, self.stages = {}, {}     # stamp_ns -> (msg, arrival time)
         self.counts = {"frames": 0, "bad_frames": 0, "bad_stage": 0, "unpaired": 0, "published": 0}
         qos = QOS_RELIABLE_STREAM if p["reliable"] else qos_profile_sensor_data
-        self.pub = self.create_publisher(SphereObservationArray, "/ct/observations", QOS_RELIABLE_STREAM)
-        self.create_subscription(Image, "/ct/detector/image", self._on_image, qos)
-        self.create_subscription(JointState, "/ct/stage/joint_states", self._on_stage, qos)
+        self.pub = self.create_publisher(SphereObservationArray, "ct/observations", QOS_RELIABLE_STREAM)
+        self.create_subscription(Image, "ct/detector/image", self._on_image, qos)
+        self.create_subscription(JointState, "ct/stage/joint_states", self._on_stage, qos)
         self.create_timer(1.0, self._expire)
+        from ct_calib_nodes.nodes import plant  # noqa: PLC0415
+        self.rates = {"image": plant.RateMeter(), "stage": plant.RateMeter()}
+        self.last_counts = dict(self.counts)
+        self.diagnostics = plant.Diagnostics(self, self.diagnose)
 
     def _on_image(self, msg):
+        self.rates["image"].tick()
         self.images[stamp_ns(msg.header.stamp)] = (msg, time.monotonic())
         self._pair(stamp_ns(msg.header.stamp))
 
     def _on_stage(self, msg):
+        self.rates["stage"].tick()
         self.stages[stamp_ns(msg.header.stamp)] = (msg, time.monotonic())
         self._pair(stamp_ns(msg.header.stamp))
 
@@ -102,10 +108,37 @@ class CtSphereDetector(Node):
                 self.counts["unpaired"] += 1
                 self.get_logger().warning(f"dropped unpaired {what} stamped {t} ns (no partner within {limit} s)")
 
+    def diagnose(self):
+        from ct_calib_nodes.nodes import plant  # noqa: PLC0415
+
+        c = self.counts
+        values = {"image rate [1/s]": self.rates["image"].rate(), "stage rate [1/s]": self.rates["stage"].rate(),
+                  "frames": c["frames"], "published": c["published"], "bad frames": c["bad_frames"],
+                  "bad stage readings": c["bad_stage"], "unpaired dropped": c["unpaired"],
+                  "queue: images waiting for a stage reading": len(self.images),
+                  "queue: stage readings waiting for an image": len(self.stages)}
+        new = {k: c[k] - self.last_counts.get(k, 0) for k in ("bad_frames", "bad_stage", "unpaired")}
+        self.last_counts = dict(c)
+        if any(new.values()):
+            return plant.WARN, ("in the last second: " + ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in new.items()
+                                                                    if v)), values
+        if len(self.images) + len(self.stages) > 50:
+            return plant.WARN, f"{len(self.images) + len(self.stages)} messages wait for their partner", values
+        return plant.OK, "running" if c["frames"] else "waiting for frames", values
+
     def close(self):
-        for fr in self.proc.flush():
-            self._publish(fr)
-        self.get_logger().info(f"detector counts: {self.counts}")
+        pending = self.proc.flush()
+        lost = 0
+        for fr in pending:
+            try:
+                self._publish(fr)
+            except Exception:  # noqa: BLE001 - the context is already shut down (Ctrl-C): nothing can be sent
+                lost += 1
+        msg = f"detector counts: {self.counts}"
+        if lost:
+            msg += (f"; {lost} frame(s) still held for identity initialisation were not published "
+                    "(stopped before the position completed)")
+        print(f"[ct_sphere_detector] {msg}", flush=True)
 
 
 def main(args=None):
