@@ -2,6 +2,7 @@
 
     ct_offline_solve RECORDING --instrument ct_instrument.yaml --reference-object reference_object.yaml
                      [--out DIR] [--reference-error-map FILE] [--init-frames 6] [--loss linear]
+                     [--position-tolerance 1e-4] [--workers N]
 
 RECORDING is one ``.mcap`` file or a rosbag2 directory that follows INTERFACES.md
 (``/ct/detector/image`` + ``/ct/stage/joint_states`` paired by stamp). Without
@@ -38,9 +39,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ct_calib_nodes.core.ct_pipeline import (CampaignAccumulator, FrameProcessor, campaign_error_map,
-                                             solve_campaign_position, solve_campaign_static,
-                                             static_result_from_estimate)
+from ct_calib_nodes.core.ct_pipeline import (DEFAULT_POSITION_TOLERANCE_M, CampaignAccumulator, FrameProcessor,
+                                             campaign_error_map, repeatability, solve_campaign_position,
+                                             solve_campaign_static, static_result_from_estimate)
 from ct_calib_nodes.core.detect import FrameError
 from ct_calib_nodes.io import ct_files
 from ct_calib_nodes.io.convert import MessageError, array_from_image, stage_from_joint_state, stamp_ns
@@ -58,6 +59,7 @@ class OfflineResult:
     motions: dict = field(default_factory=dict)  # mode -> {k: MotionResult}
     maps: dict = field(default_factory=dict)     # mode -> {definition: ErrorMap} ("travel", "detector")
     map_positions: dict = field(default_factory=dict)  # mode -> position indices ks of the maps
+    repeatability: dict = field(default_factory=dict)  # mode -> {definition: [revisit group dicts]}
     frames: list = field(default_factory=list)   # FrameResult per processed frame, in order
     acc: CampaignAccumulator | None = None
     read_report: ReadReport | None = None
@@ -67,13 +69,15 @@ class OfflineResult:
 
 
 def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: str = "linear",
-                    progress=None) -> OfflineResult:
-    """Replay a recording through detection, identity and the solvers (no files written)."""
+                    progress=None, position_tolerance_m: float = DEFAULT_POSITION_TOLERANCE_M) -> OfflineResult:
+    """Replay a recording through detection, identity and the solvers (no files written).
+
+    ``position_tolerance_m``: the stage position segmenter's tolerance (ct_pipeline.PositionSegmenter)."""
     say = progress or (lambda _m: None)
-    out = OfflineResult(read_report=ReadReport(), acc=CampaignAccumulator())
+    out = OfflineResult(read_report=ReadReport(), acc=CampaignAccumulator(position_tolerance_m))
     counts = {"images": 0, "stage_readings": 0, "frames": 0, "bad_frames": 0, "bad_stage": 0, "unpaired": 0}
     proc = FrameProcessor(ref, instrument.detector, instrument.sdd_reported_m, instrument.flat_field_counts,
-                          init_frames=init_frames)
+                          init_frames=init_frames, srd_tolerance_m=position_tolerance_m)
     images, stages = {}, {}
     t0 = time.monotonic()
 
@@ -155,6 +159,8 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
                                             index_repeatability_rad=instrument.index_repeatability_rad)
                 out.maps[mode][definition] = em
                 out.map_positions[mode] = ks
+                out.repeatability.setdefault(mode, {})[definition] = repeatability(em, ks,
+                                                                                   out.acc.srd_tolerance_m)
     say(f"error motions solved at {len(out.motions.get('multi', {}))} position(s)")
     return out
 
@@ -166,8 +172,14 @@ def _result_dict(res, instrument, ref, recording, files) -> dict:
          "units": "SI (m, rad); covariance in products of the parameter units",
          "counts": res.counts, "problems": res.problems, "notes": res.notes,
          "stage_positions": [{"index": k, "srd_reported_m": p.srd_reported_m, "frames": p.n_frames,
+                              "srd_reading_range_m": float(np.ptp(p.srd_readings_m)),
+                              "first_stamp_ns": int(min(p.stamps_ns)), "last_stamp_ns": int(max(p.stamps_ns)),
                               "observations": p.n_obs, "rejected_detections": p.n_rejected}
                              for k, p in enumerate(res.acc.positions)],
+         "stage_position_rule": (f"positions split on motion in time: a reported SRD more than "
+                                 f"{res.acc.srd_tolerance_m:g} m from the current position's median reading starts "
+                                 f"a new position; a return to an earlier SRD is a new position (a revisit)"),
+         "repeatability": res.repeatability,
          "static": res.static.to_dict() if res.static is not None else None, "error_motions": {}, "error_maps": {}}
     for mode, by_k in res.motions.items():
         d["error_motions"][mode] = {str(k): dict(r.to_dict(), units=list(MOTION_PARAM_UNITS))
@@ -236,7 +248,11 @@ def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files
                 reference_path=reference_path, residuals=resid,
                 meta={"recording": str(recording), "instrument file": str(files["instrument"]),
                       "reference object file": str(files["reference_object"]),
-                      "frames": res.counts.get("frames"), "problems": len(res.problems)})
+                      "frames": res.counts.get("frames"), "problems": len(res.problems),
+                      "stage positions": f"{len(res.acc.positions)} (split on motion in time, tolerance "
+                                         f"{res.acc.srd_tolerance_m:g} m)",
+                      "repeatability (revisits, multi, travel)": repeatability_text(
+                          res.repeatability.get("multi", {}).get("travel", []))})
         for item in sorted(tmp.iterdir()):
             dest = out_dir / item.name
             if dest.is_dir():
@@ -245,6 +261,22 @@ def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out_dir
+
+
+def repeatability_text(groups) -> str:
+    """One line per revisited nominal SRD: positioning and straightness differences to the first visit."""
+    if not groups:
+        return "no stage position was revisited"
+    parts = []
+    for g in groups:
+        d = []
+        for f, lab in (("positioning_m", "positioning"), ("straightness_x_m", "straightness x"),
+                       ("straightness_y_m", "straightness y")):
+            u = g["u_" + f] or [float("nan")] * len(g[f])
+            d.append(lab + " " + ", ".join(f"{v * 1e6:+.2f} um (u {s * 1e6:.2f})" for v, s in zip(g[f], u)))
+        pos = ", ".join(str(k + 1) for k in g["positions"])
+        parts.append(f"SRD {g['srd_reported_m'][0] * 1e3:.3f} mm, positions {pos}: " + "; ".join(d))
+    return " | ".join(parts)
 
 
 def _find_file(given, recording: pathlib.Path, name: str, default):
@@ -265,6 +297,9 @@ def main(argv=None) -> int:
     ap.add_argument("--reference-error-map", help="independent reference error map (CSV/YAML) for delta plots")
     ap.add_argument("--out", help="output directory (default <recording>_calibration)")
     ap.add_argument("--init-frames", type=int, default=6, help="frames used to initialise sphere identity")
+    ap.add_argument("--position-tolerance", type=float, default=DEFAULT_POSITION_TOLERANCE_M,
+                    help="a reported SRD further than this from the current stage position's median reading "
+                         "starts a new position [m] (above the read-back jitter, below the smallest step)")
     ap.add_argument("--loss", default="linear", help="least-squares loss: linear, huber, soft_l1, cauchy, arctan")
     args = ap.parse_args(argv)
     rec = pathlib.Path(args.recording)
@@ -283,8 +318,13 @@ def main(argv=None) -> int:
     print(f"[offline] instrument file {inst_path} ({how_i}); reference object {ref_path} ({how_r})")
     print(f"[offline] {thermal_note}")
     out_dir = pathlib.Path(args.out) if args.out else rec.parent / f"{rec.stem}_calibration"
+    if not (args.position_tolerance > 0 and np.isfinite(args.position_tolerance)):
+        print(f"ct_offline_solve: --position-tolerance must be a positive length [m], got {args.position_tolerance}",
+              file=sys.stderr)
+        return 2
     res = solve_recording(rec, instrument, ref, init_frames=args.init_frames, loss=args.loss,
-                          progress=lambda m: print(f"[offline] {m}", flush=True))
+                          progress=lambda m: print(f"[offline] {m}", flush=True),
+                          position_tolerance_m=args.position_tolerance)
     res.notes.append(thermal_note)
     for p in res.problems[:20]:
         print(f"[offline] problem: {p}")

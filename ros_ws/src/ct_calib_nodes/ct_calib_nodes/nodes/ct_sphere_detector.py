@@ -23,11 +23,12 @@ from ct_calib_nodes.core.ct_pipeline import FrameProcessor
 from ct_calib_nodes.core.detect import FrameError
 from ct_calib_nodes.io.convert import MessageError, array_from_image, stage_from_joint_state, stamp_ns
 from ct_calib_nodes.io.observations_out import observation_array_msg
-from ct_calib_nodes.nodes.runner import (CT_FILE_PARAMS, QOS_RELIABLE_STREAM, declare_parameters,
+from ct_calib_nodes.nodes.runner import (CT_FILE_PARAMS, POSITION_PARAMS, QOS_RELIABLE_STREAM, declare_parameters,
                                          load_ct_files, run_node)
 
 PARAMS = {
     **CT_FILE_PARAMS,
+    **POSITION_PARAMS,
     "init_frames": (6, "frames used to initialise sphere identity at each stage position [count]"),
     "pair_timeout_s": (120.0, "drop an image or stage reading left unpaired this long [s]"),
     "reliable": (True, "reliable subscriptions (complete campaigns); false = sensor-data QoS for best-effort drivers"),
@@ -40,7 +41,8 @@ class CtSphereDetector(Node):
         self.p = p = declare_parameters(self, PARAMS)
         self.instrument, self.ref = load_ct_files(p, self.get_logger())
         self.proc = FrameProcessor(self.ref, self.instrument.detector, self.instrument.sdd_reported_m,
-                                   self.instrument.flat_field_counts, init_frames=int(p["init_frames"]))
+                                   self.instrument.flat_field_counts, init_frames=int(p["init_frames"]),
+                                   srd_tolerance_m=float(p["position_tolerance_m"]))
         self.images, self.stages = {}, {}     # stamp_ns -> (msg, arrival time)
         self.counts = {"frames": 0, "bad_frames": 0, "bad_stage": 0, "unpaired": 0, "published": 0}
         qos = QOS_RELIABLE_STREAM if p["reliable"] else qos_profile_sensor_data
