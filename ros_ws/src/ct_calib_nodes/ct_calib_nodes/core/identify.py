@@ -329,7 +329,7 @@ class SphereIdentifier:
                 w = w0.copy()
                 w[1] -= dcol * pitch                # detector offset: a uniform column shift
                 w[8] += -drow * pitch / mag + dy    # object height
-                pred, _ = self._raw_predict(alphas, w)
+                pred = forward_srf(w, self.centres_of_m, alphas, self.detector)     # centres only
                 cands.append((self._score(frames, pred, coarse_gate), w))
         cands.sort(key=lambda t: t[0])
         starts = []
@@ -349,23 +349,8 @@ class SphereIdentifier:
             # the same labelling reached from another start is not a rival hypothesis
             if any(np.max(np.abs(pred - r[6])) < gate for r in results):
                 continue
-            # final score: unmatched detections and unexplained visible, isolated predictions
-            n_unmatched = 0
-            n_missing = 0
-            for j, f in enumerate(frames):
-                idx, _, _ = self._match(f, pred[j], r_px[j], gate)
-                n_unmatched += int(np.count_nonzero(idx < 0))
-                vis = self._in_view(pred[j], -r_px[j])
-                dd = np.linalg.norm(pred[j][:, None] - pred[j][None], axis=2)
-                np.fill_diagonal(dd, np.inf)
-                iso = vis & (dd.min(axis=1) > 2.0 * r_px[j] + self.settings.separation_margin_px)
-                if len(f):
-                    near = np.linalg.norm(pred[j][:, None] - f[None], axis=2).min(axis=1)
-                else:
-                    near = np.full(len(pred[j]), np.inf)
-                n_missing += int(np.count_nonzero(iso & (near > gate)))
-            results.append((n_unmatched + n_missing, float(np.mean(res ** 2)) if res.size else np.inf,
-                            w, res, n_match, gate, pred))
+            results.append((self._unexplained(frames, pred, r_px, gate),
+                            float(np.mean(res ** 2)) if res.size else np.inf, w, res, n_match, gate, pred))
         results.sort(key=lambda t: (t[0], t[1]))
         bad, _, w, res, n_match, gate_final, _ = results[0]
         margin = results[1][0] - bad if len(results) > 1 else np.inf
@@ -380,14 +365,76 @@ class SphereIdentifier:
             self._w = None
         return InitialisationResult(w, res, rms, n_match, n_det, 0.5 * float(np.sum(res ** 2)), ok, msg, nfev)
 
+    def _unexplained(self, frames, pred, r_px, gate) -> int:
+        """Unmatched detections plus visible, isolated predicted spheres with no detection near."""
+        n_unmatched = 0
+        n_missing = 0
+        for j, f in enumerate(frames):
+            idx, _, _ = self._match(f, pred[j], r_px[j], gate)
+            n_unmatched += int(np.count_nonzero(idx < 0))
+            vis = self._in_view(pred[j], -r_px[j])
+            dd = np.linalg.norm(pred[j][:, None] - pred[j][None], axis=2)
+            np.fill_diagonal(dd, np.inf)
+            iso = vis & (dd.min(axis=1) > 2.0 * r_px[j] + self.settings.separation_margin_px)
+            if len(f):
+                near = np.linalg.norm(pred[j][:, None] - f[None], axis=2).min(axis=1)
+            else:
+                near = np.full(len(pred[j]), np.inf)
+            n_missing += int(np.count_nonzero(iso & (near > gate)))
+        return n_unmatched + n_missing
+
+    def initialise_tracked(self, previous_w, previous_srd_m: float, frames_centres_px, alphas_rad,
+                           srd_m: float) -> InitialisationResult:
+        """Identity at a new stage position from the pose found at the previous one.
+
+        The object sits on the rotary table: moving the stage carries it along the travel
+        without turning it (error motions are arcseconds and micrometres), so the previous
+        identification pose, moved by the change of the reported SRD along {SRF} Z, predicts
+        the new frames; it is refined on them (no pose search, so the labelling decided at the
+        first position is kept). Succeeds only when the refined pose explains the frames at
+        least as well as a pose search must (rms below the gate, 90 % of the detections
+        matched, at most 5 % unexplained); the caller then falls back to :meth:`initialise`.
+        """
+        frames = [_check_centres(f, "frames_centres_px[j]") for f in frames_centres_px]
+        alphas = np.asarray(alphas_rad, dtype=np.float64).reshape(-1)
+        if len(frames) == 0 or alphas.size != len(frames) or not np.all(np.isfinite(alphas)):
+            raise ValueError("need one finite alpha per frame and at least one frame")
+        w = np.asarray(previous_w, dtype=np.float64).copy()
+        if w.shape != (13,) or not np.all(np.isfinite(w)):
+            raise ValueError("previous_w must be 13 finite values")
+        if not (np.isfinite(srd_m) and 0 < srd_m < self.sdd_m and np.isfinite(previous_srd_m)):
+            raise ValueError(f"srd_m must be in (0, sdd), got {srd_m}")
+        self._geom, self._motion = None, None
+        self._shift, self._scale = np.zeros(2), 1.0
+        n_det = sum(len(f) for f in frames)
+        travel = float(srd_m) - float(previous_srd_m)
+        w[0] += travel          # the rotation axis ...
+        w[9] += travel          # ... and the object on it
+        r_nom = float(np.median(self.radii_m)) * (self.sdd_m / srd_m) / self.detector.pixel_pitch_m
+        coarse_gate = self.settings.coarse_gate_px or 2.0 * r_nom
+        w, res, n_match, nfev = self._refine(frames, alphas, w, coarse_gate)
+        gate = self._gate(w, alphas)
+        pred, r_px = self._raw_predict(alphas, w)
+        bad = self._unexplained(frames, pred, r_px, gate)
+        rms = float(np.sqrt(np.mean(res ** 2) * 2)) if res.size else np.nan
+        ok = bool(n_det >= 4 and res.size and rms < gate and n_match >= 0.9 * n_det and bad <= max(2, 0.05 * n_det))
+        msg = (f"{n_match} of {n_det} detections matched, rms {rms:.3f} px, {bad} unexplained, "
+               f"pose tracked from the previous stage position ({travel * 1e3:+.3f} mm)")
+        msg = ("pose found: " if ok else "pose tracking failed: ") + msg
+        self._w = w if ok else None
+        return InitialisationResult(w, res, rms, n_match, n_det, 0.5 * float(np.sum(res ** 2)), ok, msg, nfev)
+
     @staticmethod
     def _score(frames, pred, gate):
-        score = 0.0
-        for j, f in enumerate(frames):
-            if len(f):
-                d = np.linalg.norm(f[:, None, :] - pred[j][None, :, :], axis=2).min(axis=1)
-                score += float(np.sum(np.minimum(d, gate) ** 2))
-        return score
+        """Truncated nearest-neighbour cost sum_i min(d_i, gate)^2 over all frames' detections."""
+        sizes = [len(f) for f in frames]
+        if not sum(sizes):
+            return 0.0
+        det = np.concatenate(frames)                                   # (D, 2)
+        fj = np.repeat(np.arange(len(frames)), sizes)
+        diff = det[:, None, :] - pred[fj]                              # (D, N, 2)
+        d2 = np.einsum("dnk,dnk->dn", diff, diff).min(axis=1)
+        return float(np.sum(np.minimum(d2, gate * gate)))
 
     def _refine(self, frames, alphas, w, coarse_gate):
         nfev = 0
