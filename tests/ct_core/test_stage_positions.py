@@ -106,3 +106,14 @@ def test_bidirectional_campaign_repeatability(centres, detector):
             assert abs(g[f][0]) < 4 * g["u_" + f][0] + 1e-8, (f, g)
     # the revisit of the reference position reads the same relative to itself: u > 0 only from its own noise
     assert groups[0]["positioning_m"][0] == pytest.approx(em.positioning_m[8], abs=1e-15)
+
+
+def test_frame_rate_monitor_counts_falling_behind():
+    """Frames stamped 100 ms apart (10 frames/s): 80 ms of processing keeps up, 150 ms does not."""
+    from ct_calib_nodes.core.ct_pipeline import FrameRateMonitor
+
+    ok, slow = FrameRateMonitor(), FrameRateMonitor()
+    behind_ok = sum(ok.add(j * 100_000_000, 0.080) for j in range(30))
+    behind_slow = sum(slow.add(j * 100_000_000, 0.150) for j in range(30))
+    assert behind_ok == 0 and behind_slow == 30 - 5
+    assert slow.arrival_hz == pytest.approx(10.0) and slow.processing_hz == pytest.approx(1 / 0.15)

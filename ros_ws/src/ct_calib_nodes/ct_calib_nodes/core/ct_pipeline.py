@@ -484,6 +484,7 @@ class FrameProcessor:
         self.track = bool(track_identity)
         self._track_from = None     # (identification pose, its SRD) of the previous position
         self._init_srd = None
+        self._diagnosed = False
         self._pending = []          # (stamp, alpha, srd, detections) of this position before initialisation
         self.srd_current = None
         self.n_frames = 0
@@ -534,6 +535,7 @@ class FrameProcessor:
             if self.identifier is not None and self.identifier.initialised and self.identifier._geom is None:
                 self._track_from = (self.identifier._w.copy(), self._init_srd)
             self.identifier = self._new_identifier()
+            self._diagnosed = False
         self.srd_current = self.segmenter.reference_m
         if self.identifier.initialised:
             return out + [self._assign(int(stamp_ns), float(alpha_rad), float(srd_m), det)]
@@ -555,7 +557,9 @@ class FrameProcessor:
             init = self.identifier.initialise_tracked(self._track_from[0], self._track_from[1], centres, alphas, srd)
             self.init_messages.append((srd, init.message))
         if init is None or not init.success:
-            init = self.identifier.initialise(centres, alphas, srd)
+            # the mirrored / reversed diagnosis costs three pose searches: once per position
+            init = self.identifier.initialise(centres, alphas, srd, diagnose=not self._diagnosed)
+            self._diagnosed = self._diagnosed or not init.success
             self.init_messages.append((srd, init.message))
         if init.success:
             self._init_srd = srd
@@ -586,3 +590,34 @@ class FrameProcessor:
             semi_axes_px=np.concatenate([np.asarray(det.semi_axes_px).reshape(-1, 2), np.full((nr, 2), np.nan)]),
             angle_rad=np.concatenate([np.asarray(det.angle_rad).reshape(-1), np.full(nr, np.nan)]),
             fit_rms_px=np.concatenate([np.asarray(det.fit_rms_px).reshape(-1), np.full(nr, np.nan)]))
+
+
+class FrameRateMonitor:
+    """Processing time per frame against the interval between frame stamps (smoothed)."""
+
+    def __init__(self, smoothing: float = 0.2, warm_up: int = 5, margin: float = 1.05):
+        self.a, self.warm_up, self.margin = smoothing, warm_up, margin
+        self.proc_s = self.interval_s = None
+        self.last_stamp = None
+        self.n = 0
+
+    @staticmethod
+    def _ewma(old, new, a):
+        return new if old is None else (1 - a) * old + a * new
+
+    def add(self, stamp_ns: int, seconds: float) -> bool:
+        """Record one frame; True when frames come faster than they are processed."""
+        self.proc_s = self._ewma(self.proc_s, seconds, self.a)
+        if self.last_stamp is not None and stamp_ns > self.last_stamp:
+            self.interval_s = self._ewma(self.interval_s, (stamp_ns - self.last_stamp) * 1e-9, self.a)
+        self.last_stamp = stamp_ns if self.last_stamp is None else max(self.last_stamp, stamp_ns)
+        self.n += 1
+        return bool(self.n > self.warm_up and self.interval_s and self.proc_s > self.margin * self.interval_s)
+
+    @property
+    def processing_hz(self) -> float:
+        return 1.0 / self.proc_s if self.proc_s else float("nan")
+
+    @property
+    def arrival_hz(self) -> float:
+        return 1.0 / self.interval_s if self.interval_s else float("nan")

@@ -517,7 +517,8 @@ class SphereIdentifier:
         the new frames; it is refined on them (no pose search, so the labelling decided at the
         first position is kept). Succeeds only when the refined pose explains the frames at
         least as well as a pose search must (rms below the gate, 90 % of the detections
-        matched, at most 5 % unexplained); the caller then falls back to :meth:`initialise`.
+        matched, at most 10 % unexplained: missed or rejected detections); the caller then falls
+        back to :meth:`initialise`.
         """
         frames = [_check_centres(f, "frames_centres_px[j]") for f in frames_centres_px]
         alphas = np.asarray(alphas_rad, dtype=np.float64).reshape(-1)
@@ -541,7 +542,7 @@ class SphereIdentifier:
         pred, r_px = self._raw_predict(alphas, w)
         bad = self._unexplained(frames, pred, r_px, gate)
         rms = float(np.sqrt(np.mean(res ** 2) * 2)) if res.size else np.nan
-        ok = bool(n_det >= 4 and res.size and rms < gate and n_match >= 0.9 * n_det and bad <= max(2, 0.05 * n_det))
+        ok = bool(n_det >= 4 and res.size and rms < gate and n_match >= 0.9 * n_det and bad <= max(2, 0.10 * n_det))
         msg = (f"{n_match} of {n_det} detections matched, rms {rms:.3f} px, {bad} unexplained, "
                f"pose tracked from the previous stage position ({travel * 1e3:+.3f} mm)")
         msg = ("pose found: " if ok else "pose tracking failed: ") + msg
