@@ -81,3 +81,13 @@ def test_parallel_replay_is_bit_identical(tmp_path):
     assert [g["positions"] for g in groups] == [[0, 2]]
     # the return to the first SRD repeats it: zero within its uncertainty (the renderer has no stage error there)
     assert abs(groups[0]["positioning_m"][0]) < 4 * groups[0]["u_positioning_m"][0] + 1e-7
+    # results.json carries the positions (with their time spans) and the repeatability; the report line names them
+    import json
+
+    from ct_calib_nodes.offline import _result_dict, repeatability_text
+
+    d = json.loads(json.dumps(_result_dict(par, inst, ref, rec, {"instrument": "i", "reference_object": "r"})))
+    assert [p["index"] for p in d["stage_positions"]] == [0, 1, 2]
+    assert d["stage_positions"][2]["first_stamp_ns"] > d["stage_positions"][1]["last_stamp_ns"]
+    assert d["repeatability"]["multi"]["travel"][0]["positions"] == [0, 2]
+    assert "positions 1, 3" in repeatability_text(groups)
