@@ -2,6 +2,7 @@
 
     ct_offline_solve RECORDING --instrument ct_instrument.yaml --reference-object reference_object.yaml
                      [--out DIR] [--reference-error-map FILE] [--init-frames 6] [--loss linear]
+                     [--position-tolerance 1e-4] [--workers N]
 
 RECORDING is one ``.mcap`` file or a rosbag2 directory that follows INTERFACES.md
 (``/ct/detector/image`` + ``/ct/stage/joint_states`` paired by stamp). Without
@@ -29,6 +30,7 @@ problems are printed); 1 nothing usable; 2 bad arguments or files.
 from __future__ import annotations
 
 import argparse
+import os
 import pathlib
 import shutil
 import sys
@@ -38,9 +40,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ct_calib_nodes.core.ct_pipeline import (CampaignAccumulator, FrameProcessor, campaign_error_map,
-                                             solve_campaign_position, solve_campaign_static,
-                                             static_result_from_estimate)
+from ct_calib_nodes.core.ct_pipeline import (DEFAULT_POSITION_TOLERANCE_M, CampaignAccumulator, FrameProcessor,
+                                             campaign_error_map, repeatability, solve_campaign_position,
+                                             solve_campaign_static, static_result_from_estimate)
 from ct_calib_nodes.core.detect import FrameError
 from ct_calib_nodes.io import ct_files
 from ct_calib_nodes.io.convert import MessageError, array_from_image, stage_from_joint_state, stamp_ns
@@ -58,28 +60,87 @@ class OfflineResult:
     motions: dict = field(default_factory=dict)  # mode -> {k: MotionResult}
     maps: dict = field(default_factory=dict)     # mode -> {definition: ErrorMap} ("travel", "detector")
     map_positions: dict = field(default_factory=dict)  # mode -> position indices ks of the maps
+    repeatability: dict = field(default_factory=dict)  # mode -> {definition: [revisit group dicts]}
     frames: list = field(default_factory=list)   # FrameResult per processed frame, in order
     acc: CampaignAccumulator | None = None
     read_report: ReadReport | None = None
     counts: dict = field(default_factory=dict)
     problems: list = field(default_factory=list)
     notes: list = field(default_factory=list)      # what was applied to the inputs (thermal expansion, ...)
+    identity: list = field(default_factory=list)   # (reported SRD, message) of every identity initialisation
+
+
+class _StageClock:
+    """CPU seconds per pipeline stage (``timing`` dict of solve_recording), summed over processes."""
+
+    def __init__(self, timing):
+        self.t = timing if timing is not None else {}
+        for k in ("read", "decode", "detect", "identify", "solve"):
+            self.t.setdefault(k, 0.0)
+
+    def add(self, stage, seconds):
+        self.t[stage] += seconds
+
+
+# --- worker processes (parallel replay): decode + detect one frame ---------------------------------
+_WORKER: dict = {}
+
+
+def _worker_init(ref, detector, sdd, flat, init_frames, tolerance):
+    try:
+        import cv2  # noqa: PLC0415
+
+        cv2.setNumThreads(1)        # one process per core: no thread pool on top
+    except ImportError:
+        pass
+    _WORKER["proc"] = FrameProcessor(ref, detector, sdd, flat, init_frames=init_frames, srd_tolerance_m=tolerance)
+
+
+def _worker_detect(task):
+    """(stamp, CDR bytes of the Image, srd) -> (detections or None, problem or None, decode s, detect s)."""
+    from ct_calib_nodes.io.raw_replay import ImageView  # noqa: PLC0415
+
+    _t, data, srd = task
+    proc = _WORKER["proc"]
+    c0 = time.process_time()
+    try:
+        image, enc = array_from_image(ImageView.from_cdr(data), (proc.detector.rows, proc.detector.cols))
+    except (MessageError, ValueError) as exc:
+        return None, str(exc), time.process_time() - c0, 0.0
+    c1 = time.process_time()
+    try:
+        det = proc.detect(image, enc, srd)
+    except FrameError as exc:
+        return None, str(exc), c1 - c0, time.process_time() - c1
+    return det, None, c1 - c0, time.process_time() - c1
 
 
 def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: str = "linear",
-                    progress=None, namespace: str = "/") -> OfflineResult:
+                    progress=None, namespace: str = "/",
+                    position_tolerance_m: float = DEFAULT_POSITION_TOLERANCE_M,
+                    workers: int = 1, timing: dict | None = None) -> OfflineResult:
     """Replay a recording through detection, identity and the solvers (no files written).
-    ``namespace``: the cell's namespace in the recording (its raw topics are ``<ns>/ct/...``)."""
+
+    ``namespace``: the cell's namespace in the recording (its raw topics are ``<ns>/ct/...``).
+    ``position_tolerance_m``: the stage position segmenter's tolerance (ct_pipeline.PositionSegmenter).
+    ``workers`` > 1: image decoding and sphere detection run in that many worker processes
+    (the images read as raw bytes and viewed without a copy, io/raw_replay.py); identity, the
+    accumulation and the solvers stay in this process and take the frames in recording order,
+    so the results are bit for bit those of ``workers`` = 1.
+    ``timing``: a dict filled with CPU seconds per stage (read, decode, detect, identify, solve).
+    """
     from ct_calib_nodes.io import namespaces  # noqa: PLC0415
 
     image_topic, stage_topic = (namespaces.topic(namespace, t) for t in namespaces.CT_RAW)
     say = progress or (lambda _m: None)
-    out = OfflineResult(read_report=ReadReport(), acc=CampaignAccumulator())
+    clock = _StageClock(timing)
+    out = OfflineResult(read_report=ReadReport(), acc=CampaignAccumulator(position_tolerance_m))
     counts = {"images": 0, "stage_readings": 0, "frames": 0, "bad_frames": 0, "bad_stage": 0, "unpaired": 0}
     proc = FrameProcessor(ref, instrument.detector, instrument.sdd_reported_m, instrument.flat_field_counts,
-                          init_frames=init_frames)
+                          init_frames=init_frames, srd_tolerance_m=position_tolerance_m)
     images, stages = {}, {}
     t0 = time.monotonic()
+    shape = (instrument.detector.rows, instrument.detector.cols)
 
     def take(results):
         for fr in results:
@@ -89,9 +150,24 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
             out.acc.add_frame(fr.stamp_ns, fr.alpha_rad, fr.srd_reported_m, idx, uv, sig,
                               int(np.count_nonzero(fr.flag)), minor)
 
-    def pair(t):
+    def bad_frame(t, text):
+        counts["bad_frames"] += 1
+        out.problems.append(f"frame {t} ns: skipped: {text}")
+
+    def identify(t, det, alpha, srd):
+        c = time.process_time()
+        take(proc.push_detections(t, det, alpha, srd))
+        clock.add("identify", time.process_time() - c)
+
+    def tick():
+        if counts["frames"] % 25 == 0:
+            rate = counts["frames"] / max(time.monotonic() - t0, 1e-9)
+            say(f"{counts['frames']} frames ({rate:.1f}/s), {len(out.acc.positions)} stage position(s)")
+
+    def paired(t):
+        """The stage reading (alpha, srd) of a completed pair, the image; None if unusable."""
         if t not in images or t not in stages:
-            return
+            return None
         img, js = images.pop(t), stages.pop(t)
         counts["frames"] += 1
         try:
@@ -99,27 +175,105 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
         except MessageError as exc:
             counts["bad_stage"] += 1
             out.problems.append(f"frame {t} ns: bad stage reading: {exc}")
-            return
+            return None
         try:
-            image, enc = array_from_image(img, (instrument.detector.rows, instrument.detector.cols))
-            take(proc.push(t, image, enc, alpha, srd))
-        except (MessageError, FrameError) as exc:
-            counts["bad_frames"] += 1
-            out.problems.append(f"frame {t} ns: skipped: {exc}")
-        if counts["frames"] % 25 == 0:
-            rate = counts["frames"] / max(time.monotonic() - t0, 1e-9)
-            say(f"{counts['frames']} frames ({rate:.1f}/s), {len(out.acc.positions)} stage position(s)")
+            proc.check_stage(alpha, srd)
+        except FrameError as exc:
+            bad_frame(t, exc)
+            return None
+        return img, alpha, srd
 
-    for m in iter_recording(recording, topics=(image_topic, stage_topic), report=out.read_report):
-        t = stamp_ns(m.msg.header.stamp)
-        if m.topic == image_topic:
-            counts["images"] += 1
-            images[t] = m.msg
+    def messages(raw):
+        if raw:
+            from ct_calib_nodes.io.raw_replay import ImageView, iter_recording_raw  # noqa: PLC0415
+
+            it = iter_recording_raw(recording, topics=(image_topic, stage_topic), raw_topics=(image_topic,), report=out.read_report)
         else:
-            counts["stage_readings"] += 1
-            stages[t] = m.msg
-        pair(t)
+            it = iter_recording(recording, topics=(image_topic, stage_topic), report=out.read_report)
+        while True:
+            c = time.process_time()
+            m = next(it, None)
+            if m is None:
+                clock.add("read", time.process_time() - c)
+                return
+            if m.topic == image_topic and raw:
+                try:
+                    head = ImageView.from_cdr(m.msg)
+                except ValueError as exc:
+                    out.read_report.messages_undecodable += 1
+                    out.problems.append(f"undecodable image at {m.log_time_ns} ns: {exc}")
+                    clock.add("read", time.process_time() - c)
+                    continue
+                t = stamp_ns(head.header.stamp)
+                msg = m.msg.obj                         # the message's bytes, not copied
+            else:
+                t = stamp_ns(m.msg.header.stamp)
+                msg = m.msg
+            clock.add("read", time.process_time() - c)
+            if m.topic == image_topic:
+                counts["images"] += 1
+                images[t] = msg
+            else:
+                counts["stage_readings"] += 1
+                stages[t] = msg
+            yield t
+
+    if workers <= 1:
+        for t in messages(raw=False):
+            n0 = counts["frames"]
+            got = paired(t)
+            if got is not None:
+                img, alpha, srd = got
+                try:
+                    c = time.process_time()
+                    image, enc = array_from_image(img, shape)
+                    c1 = time.process_time()
+                    clock.add("decode", c1 - c)
+                    det = proc.detect(image, enc, srd)
+                    clock.add("detect", time.process_time() - c1)
+                except (MessageError, FrameError) as exc:
+                    bad_frame(t, exc)
+                else:
+                    identify(t, det, alpha, srd)
+            if counts["frames"] != n0:
+                tick()
+    else:
+        import collections  # noqa: PLC0415
+        import multiprocessing  # noqa: PLC0415
+        from concurrent.futures import ProcessPoolExecutor  # noqa: PLC0415
+
+        window = collections.deque()            # (stamp, alpha, srd, future), recording order
+        depth = 4 * workers
+
+        def drain(keep):
+            while len(window) > keep:
+                t, alpha, srd, fut = window.popleft()
+                det, problem, c_dec, c_det = fut.result()
+                clock.add("decode", c_dec)
+                clock.add("detect", c_det)
+                if problem is not None:
+                    bad_frame(t, problem)
+                else:
+                    identify(t, det, alpha, srd)
+
+        ctx = multiprocessing.get_context("forkserver")
+        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
+                                 initargs=(ref, instrument.detector, instrument.sdd_reported_m,
+                                           instrument.flat_field_counts, init_frames, position_tolerance_m)) as pool:
+            for t in messages(raw=True):
+                n0 = counts["frames"]
+                got = paired(t)
+                if got is not None:
+                    img, alpha, srd = got
+                    window.append((t, alpha, srd, pool.submit(_worker_detect, (t, img, srd))))
+                    drain(depth)
+                if counts["frames"] != n0:
+                    tick()
+            drain(0)
+    c = time.process_time()
     take(proc.flush())
+    clock.add("identify", time.process_time() - c)
+    out.identity = list(proc.init_messages)
     counts["unpaired"] = len(images) + len(stages)
     if counts["unpaired"]:
         out.problems.append(f"{len(images)} image(s) and {len(stages)} stage reading(s) without a partner")
@@ -134,7 +288,14 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
     if not out.acc.positions or out.acc.positions[0].n_frames < 3:
         out.problems.append("fewer than 3 usable frames at the first stage position: nothing to solve")
         return out
+    c_solve = time.process_time()
+    try:
+        return _solve_positions(out, instrument, ref, loss, say)
+    finally:
+        clock.add("solve", time.process_time() - c_solve)
 
+
+def _solve_positions(out, instrument, ref, loss, say) -> OfflineResult:
     out.static = solve_campaign_static(out.acc, ref.centres_of_m, instrument.detector,
                                        instrument.sdd_reported_m, loss=loss,
                                        centre_uncertainty_m=ref.center_uncertainty_m)
@@ -163,6 +324,8 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
                                             index_repeatability_rad=instrument.index_repeatability_rad)
                 out.maps[mode][definition] = em
                 out.map_positions[mode] = ks
+                out.repeatability.setdefault(mode, {})[definition] = repeatability(em, ks,
+                                                                                   out.acc.srd_tolerance_m)
     say(f"error motions solved at {len(out.motions.get('multi', {}))} position(s)")
     return out
 
@@ -174,8 +337,15 @@ def _result_dict(res, instrument, ref, recording, files) -> dict:
          "units": "SI (m, rad); covariance in products of the parameter units",
          "counts": res.counts, "problems": res.problems, "notes": res.notes,
          "stage_positions": [{"index": k, "srd_reported_m": p.srd_reported_m, "frames": p.n_frames,
+                              "srd_reading_range_m": float(np.ptp(p.srd_readings_m)),
+                              "first_stamp_ns": int(min(p.stamps_ns)), "last_stamp_ns": int(max(p.stamps_ns)),
                               "observations": p.n_obs, "rejected_detections": p.n_rejected}
                              for k, p in enumerate(res.acc.positions)],
+         "stage_position_rule": (f"positions split on motion in time: a reported SRD more than "
+                                 f"{res.acc.srd_tolerance_m:g} m from the current position's median reading starts "
+                                 f"a new position; a return to an earlier SRD is a new position (a revisit)"),
+         "repeatability": res.repeatability,
+         "identity": [{"srd_reported_m": srd, "message": m} for srd, m in res.identity],
          "static": res.static.to_dict() if res.static is not None else None, "error_motions": {}, "error_maps": {}}
     for mode, by_k in res.motions.items():
         d["error_motions"][mode] = {str(k): dict(r.to_dict(), units=list(MOTION_PARAM_UNITS))
@@ -248,7 +418,11 @@ def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files
                 reference_path=reference_path, residuals=resid,
                 meta={"recording": str(recording), "instrument file": str(files["instrument"]),
                       "reference object file": str(files["reference_object"]),
-                      "frames": res.counts.get("frames"), "problems": len(res.problems)})
+                      "frames": res.counts.get("frames"), "problems": len(res.problems),
+                      "stage positions": f"{len(res.acc.positions)} (split on motion in time, tolerance "
+                                         f"{res.acc.srd_tolerance_m:g} m)",
+                      "repeatability (revisits, multi, travel)": repeatability_text(
+                          res.repeatability.get("multi", {}).get("travel", []))})
         for item in sorted(tmp.iterdir()):
             dest = out_dir / item.name
             if dest.is_dir():
@@ -257,6 +431,31 @@ def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out_dir
+
+
+def repeatability_text(groups) -> str:
+    """One line per revisited nominal SRD: positioning and straightness differences to the first visit."""
+    if not groups:
+        return "no stage position was revisited"
+    parts = []
+    for g in groups:
+        d = []
+        for f, lab in (("positioning_m", "positioning"), ("straightness_x_m", "straightness x"),
+                       ("straightness_y_m", "straightness y")):
+            u = g["u_" + f] or [float("nan")] * len(g[f])
+            d.append(lab + " " + ", ".join(f"{v * 1e6:+.2f} um (u {s * 1e6:.2f})" for v, s in zip(g[f], u)))
+        pos = ", ".join(str(k + 1) for k in g["positions"])
+        parts.append(f"SRD {g['srd_reported_m'][0] * 1e3:.3f} mm, positions {pos}: " + "; ".join(d))
+    return " | ".join(parts)
+
+
+def default_workers() -> int:
+    """Worker processes for detection: the cores this process may use, at most 8."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:
+        n = os.cpu_count() or 1
+    return max(1, min(8, n))
 
 
 def _find_file(given, recording: pathlib.Path, name: str, default):
@@ -299,6 +498,12 @@ def main(argv=None) -> int:
     ap.add_argument("--reference-error-map", help="independent reference error map (CSV/YAML) for delta plots")
     ap.add_argument("--out", help="output directory (default <recording>_calibration)")
     ap.add_argument("--init-frames", type=int, default=6, help="frames used to initialise sphere identity")
+    ap.add_argument("--position-tolerance", type=float, default=DEFAULT_POSITION_TOLERANCE_M,
+                    help="a reported SRD further than this from the current stage position's median reading "
+                         "starts a new position [m] (above the read-back jitter, below the smallest step)")
+    ap.add_argument("--workers", type=int, default=default_workers(),
+                    help="processes that decode and detect frames (1 = all in this process; the results are "
+                         "the same bit for bit) [default: the usable cores, at most 8]")
     ap.add_argument("--loss", default="linear", help="least-squares loss: linear, huber, soft_l1, cauchy, arctan")
     ap.add_argument("--namespace", help="the CT cell's namespace in the recording (e.g. /cell_a); default: the only "
                                         "one whose <ns>/ct/detector/image is in it")
@@ -329,8 +534,13 @@ def main(argv=None) -> int:
         print(f"[offline] CT cell namespace {namespace}")
     print(f"[offline] {thermal_note}")
     out_dir = pathlib.Path(args.out) if args.out else rec.parent / f"{rec.stem}_calibration"
+    if not (args.position_tolerance > 0 and np.isfinite(args.position_tolerance)):
+        print(f"ct_offline_solve: --position-tolerance must be a positive length [m], got {args.position_tolerance}",
+              file=sys.stderr)
+        return 2
     res = solve_recording(rec, instrument, ref, init_frames=args.init_frames, loss=args.loss,
-                          progress=lambda m: print(f"[offline] {m}", flush=True), namespace=namespace)
+                          progress=lambda m: print(f"[offline] {m}", flush=True), namespace=namespace,
+                          position_tolerance_m=args.position_tolerance, workers=max(1, args.workers))
     res.notes.append(thermal_note)
     for p in res.problems[:20]:
         print(f"[offline] problem: {p}")
