@@ -44,7 +44,7 @@ from ct_calib_nodes.core.ct_pipeline import (CampaignAccumulator, FrameProcessor
 from ct_calib_nodes.core.detect import FrameError
 from ct_calib_nodes.io import ct_files
 from ct_calib_nodes.io.convert import MessageError, array_from_image, stage_from_joint_state, stamp_ns
-from ct_calib_nodes.io.mcap_io import ReadReport, iter_recording
+from ct_calib_nodes.io.mcap_io import ReadReport, RecordingError, iter_recording
 
 IMAGE, STAGE = "/ct/detector/image", "/ct/stage/joint_states"
 MODES = ("multi", "single")
@@ -106,7 +106,8 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
             rate = counts["frames"] / max(time.monotonic() - t0, 1e-9)
             say(f"{counts['frames']} frames ({rate:.1f}/s), {len(out.acc.positions)} stage position(s)")
 
-    for m in iter_recording(recording, topics=(IMAGE, STAGE), report=out.read_report):
+    for m in iter_recording(recording, topics=(IMAGE, STAGE), report=out.read_report,
+                            types={IMAGE: "sensor_msgs/msg/Image", STAGE: "sensor_msgs/msg/JointState"}):
         t = stamp_ns(m.msg.header.stamp)
         if m.topic == IMAGE:
             counts["images"] += 1
@@ -283,9 +284,16 @@ def main(argv=None) -> int:
     print(f"[offline] instrument file {inst_path} ({how_i}); reference object {ref_path} ({how_r})")
     print(f"[offline] {thermal_note}")
     out_dir = pathlib.Path(args.out) if args.out else rec.parent / f"{rec.stem}_calibration"
-    res = solve_recording(rec, instrument, ref, init_frames=args.init_frames, loss=args.loss,
-                          progress=lambda m: print(f"[offline] {m}", flush=True))
+    try:
+        res = solve_recording(rec, instrument, ref, init_frames=args.init_frames, loss=args.loss,
+                              progress=lambda m: print(f"[offline] {m}", flush=True))
+    except RecordingError as exc:      # nothing readable at all (empty folder, not MCAP)
+        print(f"ct_offline_solve: {exc}", file=sys.stderr)
+        return 2
     res.notes.append(thermal_note)
+    print(f"[offline] recording: {res.read_report.summary()}")
+    for span in res.read_report.lost:
+        print(f"[offline] lost: {span.describe()}")
     for p in res.problems[:20]:
         print(f"[offline] problem: {p}")
     if len(res.problems) > 20:
