@@ -52,9 +52,11 @@ def small_reference_object(n=8, diameter_m=0.006):
 
 
 def ct_recording(folder, n_positions=2, n_proj=5, det_px=128, pitch_m=0.0032, n_spheres=8, seed=1,
-                 chunk_size=48 * 1024, step_m=0.05):
+                 chunk_size=48 * 1024, step_m=0.05, messages=None):
     """A short rendered campaign, solvable by ct_offline_solve: ``folder/rec.mcap`` with
-    ``ct_instrument.yaml`` and ``reference_object.yaml`` beside it. Returns the .mcap path."""
+    ``ct_instrument.yaml`` and ``reference_object.yaml`` beside it. Returns the .mcap path;
+    ``messages`` (a list) receives (topic, type name, message, log time) of what was written."""
+    messages = [] if messages is None else messages
     from sensor_msgs.msg import JointState
 
     from ct_calib_nodes.core.geometry import DetectorSpec
@@ -78,10 +80,12 @@ def ct_recording(folder, n_positions=2, n_proj=5, det_px=128, pitch_m=0.0032, n_
                 fr = render_projection(camp.static_w, camp.motions[k], a, ref, det, RenderSettings(oversample=2), rng)
                 t = T0_NS + i * 100_000_000
                 i += 1
-                w.write(IMAGE, image_from_array(fr.image, _stamp(t), "ct_detector"), t)
+                img = image_from_array(fr.image, _stamp(t), "ct_detector")
+                w.write(IMAGE, img, t)
                 js = JointState(name=["rotary", "magnification"], position=[float(a), float(camp.srd_reported_m[k])])
                 js.header.stamp = _stamp(t)
                 w.write(STAGE, js, t + 1)
+                messages += [(IMAGE, "sensor_msgs/msg/Image", img, t), (STAGE, "sensor_msgs/msg/JointState", js, t + 1)]
     ct_files.write_yaml(folder / "ct_instrument.yaml",
                         {"units": "SI", "source_to_detector": float(camp.sdd_reported_m),
                          "detector": {"cols": det_px, "rows": det_px, "pixel_pitch": pitch_m,

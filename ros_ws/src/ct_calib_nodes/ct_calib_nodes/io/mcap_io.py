@@ -879,6 +879,22 @@ class _FileReader:
         return None
 
 
+def _schema_lacks(schema, type_name: str) -> list:
+    """Fields of the installed ``type_name`` that the schema text's own message does not define
+    (empty when it defines them all, or when the type is not installed here)."""
+    try:
+        fields = import_message_type(type_name).get_fields_and_field_types()
+    except ValueError:
+        return []
+    text = bytes(schema.data).decode("utf-8", "replace").split(SEPARATOR, 1)[0]
+    names = set()
+    for line in text.splitlines():
+        m = _FIELD.match(line.split("#", 1)[0])
+        if m:
+            names.add(m.group(0).split()[-1])
+    return [f for f in fields if f not in names]
+
+
 def iter_recording(path, topics=None, report: ReadReport | None = None,
                    types: dict | None = None) -> Iterator[RecordedMessage]:
     """Replay a recording as a generator, in file order (log-time order for rosbag2 writers).
@@ -893,8 +909,9 @@ def iter_recording(path, topics=None, report: ReadReport | None = None,
         Filled with counts and the problems met: damaged chunks (skipped, reading goes on after
         them), truncation, unreadable stretches, undecodable messages, each with what was lost.
     types : dict, optional
-        ``{topic: 'pkg/msg/Type'}``: messages on these topics whose schema names another type
-        are counted as undecodable (``report.wrong_type``) instead of yielded.
+        ``{topic: 'pkg/msg/Type'}``: messages on these topics whose schema names another type,
+        or whose schema text lacks fields of the installed type, are counted as undecodable
+        (``report.wrong_type``) instead of yielded.
 
     Raises
     ------
@@ -949,6 +966,9 @@ def iter_recording(path, topics=None, report: ReadReport | None = None,
                         try:
                             if schema is None:
                                 raise ValueError(f"schema {sid} is missing")
+                            lacks = _schema_lacks(schema, expect[topic]) if topic in expect else []
+                            if lacks:
+                                raise ValueError(f"its schema text lacks the fields {lacks} of {expect[topic]}")
                             dec = factory.decoder_for(enc, schema)
                             if dec is None:
                                 raise ValueError(f"no decoder for message encoding {enc!r} "
