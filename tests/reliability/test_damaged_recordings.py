@@ -124,3 +124,17 @@ def test_offline_tool_reports_the_loss(rec, tmp_path, capsys):
     assert offline.main([str(p), "--out", str(tmp_path / "out")]) == 1
     out = capsys.readouterr().out
     assert "damaged chunk" in out and f"{IMAGE}:" in out and "log time" in out and f"{STAGE}:" in out
+
+
+@pytest.mark.parametrize("compression", ["lz4", ""])
+def test_other_compressions(tmp_path, compression):
+    path = synthetic_recording(tmp_path / "c.mcap", n_frames=12, compression=compression)
+    data = path.read_bytes()
+    chunks = [(o, ln) for o, op, ln in record_offsets(path) if op == 6]
+    off, ln = chunks[2]
+    d = bytearray(data)
+    d[off + 9 + ln // 2] ^= 0x08
+    frames, rep = _read(d, tmp_path)
+    lost, _, _ = _chunk_frames(data, off)
+    assert frames == [i for i in range(12) if i not in lost] and len(rep.lost) == 1
+    assert rep.lost[0].by_topic[IMAGE] == len(lost)

@@ -25,6 +25,7 @@ which use the installed message packages.
 from __future__ import annotations
 
 import importlib
+import io
 import json
 import os
 import pathlib
@@ -594,7 +595,7 @@ def _decompress(comp: str, data, size: int) -> bytes:
     else:
         import lz4.frame  # noqa: PLC0415
 
-        reader = lz4.frame.LZ4FrameFile(__import__("io").BytesIO(bytes(data)), mode="rb")
+        reader = lz4.frame.LZ4FrameFile(io.BytesIO(bytes(data)), mode="rb")
     parts, got = [], 0
     with reader:
         while got <= size:
