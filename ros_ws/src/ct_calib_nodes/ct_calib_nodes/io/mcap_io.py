@@ -591,6 +591,15 @@ def _decompress(comp: str, data, size: int) -> bytes:
     if comp == "zstd":
         import zstandard  # noqa: PLC0415
 
+        try:
+            declared = zstandard.frame_content_size(data)
+        except zstandard.ZstdError as exc:
+            raise _Bad(f"zstd frame header unreadable: {exc}") from None
+        if declared == size:     # the frame states the same size as the chunk: one call, one allocation
+            out = zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+            if len(out) != size:
+                raise _Bad(f"chunk decompresses to {len(out)} bytes, its header says {size}")
+            return out
         reader = zstandard.ZstdDecompressor().stream_reader(bytes(data), read_across_frames=True)
     else:
         import lz4.frame  # noqa: PLC0415
@@ -805,7 +814,7 @@ class _FileReader:
                 try:
                     t0, t1, usize, crc, comp, ro, rl = _parse_chunk_header(c)
                     try:
-                        data = _decompress(comp, c[ro:ro + rl], usize)
+                        data = _decompress(comp, memoryview(c)[ro:ro + rl], usize)
                     except _Bad:
                         raise
                     except Exception as exc:  # noqa: BLE001 - any codec error is a damaged chunk
