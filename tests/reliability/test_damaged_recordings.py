@@ -138,3 +138,19 @@ def test_other_compressions(tmp_path, compression):
     lost, _, _ = _chunk_frames(data, off)
     assert frames == [i for i in range(12) if i not in lost] and len(rep.lost) == 1
     assert rep.lost[0].by_topic[IMAGE] == len(lost)
+
+
+def test_bag_directory_with_one_unreadable_file(rec, tmp_path):
+    """A rosbag2 folder of two files, the second not MCAP at all: the first is read, the second
+    reported; a folder of only unreadable files is a RecordingError."""
+    path, data, chunks = rec
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "bag_0.mcap").write_bytes(data)
+    (bag / "bag_1.mcap").write_bytes(b"\x00" * 5000)
+    rep = ReadReport()
+    n = sum(1 for m in iter_recording(bag, report=rep) if m.topic == IMAGE)
+    assert n == N and len(rep.lost) == 1 and rep.lost[0].file == "bag_1.mcap" and "not an MCAP" in rep.lost[0].reason
+    (bag / "bag_0.mcap").write_bytes(b"junk" * 100)
+    with pytest.raises(RecordingError):
+        list(iter_recording(bag))

@@ -944,8 +944,7 @@ def iter_recording(path, topics=None, report: ReadReport | None = None,
         if report.undecodable_by_topic[topic] <= 3:
             report.errors.append(text)
 
-    for file in recording_files(path):
-        report.files.append(str(file))
+    def one_file(file):
         with open(file, "rb") as fh:
             size = os.fstat(fh.fileno()).st_size
             if size == 0:
@@ -1004,5 +1003,21 @@ def iter_recording(path, topics=None, report: ReadReport | None = None,
             finally:
                 fr = None
                 mm.close()
+
+    files = recording_files(path)
+    failed = []
+    for file in files:
+        report.files.append(str(file))
+        try:
+            yield from one_file(file)
+        except RecordingError as exc:      # one unreadable file of several: say so, read the others
+            if len(files) == 1:
+                raise
+            failed.append(exc)
+            span = LostSpan(file.name, 0, file.stat().st_size, f"unreadable file: {exc}")
+            report.lost.append(span)
+            report.errors.append(span.describe())
+    if failed and len(failed) == len(files):
+        raise failed[0]
     if report.lost:
         report.errors.append(f"read with losses: {report.summary()}")
