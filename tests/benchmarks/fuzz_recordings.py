@@ -1,7 +1,7 @@
 """Fuzzed recordings against every offline tool of a cell (issue 10): counts by kind and outcome.
 
     .venv/bin/python tests/benchmarks/fuzz_recordings.py [--cell ct] [--mutants 2000] [--seed 20261125]
-                                                         [--no-dedup] [--timeout 120] [--mix ...]
+                                                         [--no-dedup] [--timeout 120] [--mix ...] [--small]
 
 Builds a short valid recording of the cell in a temporary folder, derives the mutants (fixed
 seed; kinds in tests/reliability/reliab_fuzz.py), runs every offline tool of the cell on each in
@@ -33,6 +33,8 @@ def main():
     ap.add_argument("--seed", type=int, default=20261125)
     ap.add_argument("--no-dedup", action="store_true")
     ap.add_argument("--timeout", type=float, default=120.0)
+    ap.add_argument("--small", action="store_true",
+                    help="the cell's smallest recording (CT: one stage position, 4 frames: no error motions, no report)")
     ap.add_argument("--mix", default="bitflip=0.55,garbage=0.33,field=0.08,combo=0.04",
                     help="shares of the random kinds (field and combo mutants each need a full solve)")
     args = ap.parse_args()
@@ -41,7 +43,7 @@ def main():
         t.timeout_s = args.timeout
     with tempfile.TemporaryDirectory(prefix="fuzz_rec_") as tmp:
         t0 = time.monotonic()
-        path, entries = cell.make(pathlib.Path(tmp) / "cell", full=True)
+        path, entries = cell.make(pathlib.Path(tmp) / "cell", full=not args.small)
         base = path.read_bytes()
         mix = {k: float(v) for k, v in (kv.split("=") for kv in args.mix.split(","))}
         muts = make_mutants(base, entries, n_target=args.mutants, seed=args.seed, mix=mix)
@@ -60,7 +62,7 @@ def main():
     totals = collections.Counter()
     for c in camp.counts.values():
         totals.update(c)
-    print(json.dumps({"benchmark": "fuzz_recordings", "cell": args.cell, "seed": args.seed, "mutants": camp.n_mutants, "mix": args.mix,
+    print(json.dumps({"benchmark": "fuzz_recordings", "cell": args.cell, "seed": args.seed, "mutants": camp.n_mutants, "mix": args.mix, "small": args.small,
                       "tools": [t.name for t in cell.tools], "tool_runs_executed": camp.runs,
                       "tool_runs_reused_identical_content": camp.reused, "outcomes": dict(totals),
                       "by_kind": camp.counts, "failures": len(camp.failures),
