@@ -27,7 +27,7 @@ def _ct_make(folder, full=True):
     from reliab_recordings import ct_recording
 
     entries = []
-    path = ct_recording(folder, n_positions=2 if full else 1, n_proj=5 if full else 4, messages=entries)
+    path = ct_recording(folder, n_positions=2 if full else 1, n_proj=5 if full else 8, messages=entries)
     return path, entries
 
 

@@ -14,7 +14,7 @@ import pytest
 from reliab_cells import CT
 from reliab_fuzz import make_mutants, run_campaign
 
-pytestmark = pytest.mark.ros
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 
 def test_fuzzed_recordings_reduced(tmp_path):
@@ -32,4 +32,5 @@ def test_fuzzed_recordings_reduced(tmp_path):
     assert sum(sum(c.values()) for c in camp.counts.values()) == len(muts)
     # the damage is survived, not just refused: cut files and damaged ones still give results
     assert camp.counts["truncate_boundary"].get("exit_0", 0) >= 3
+    assert camp.counts["bitflip"].get("exit_0", 0) >= 0.2 * sum(camp.counts["bitflip"].values())
     assert camp.counts["schema"].get("exit_1", 0) >= 1 and camp.counts["field"].get("exit_0", 0) >= 1
