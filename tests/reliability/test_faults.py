@@ -98,9 +98,6 @@ def test_frame_loss_and_recorder_sigkill(tmp_path, start_node, ros_node, capsys)
     assert len(imgs) >= published, rep.summary()      # every flushed frame of the campaign is there
     assert rep.lost and ("truncated" in rep.lost[-1].reason or "without its data-end" in rep.lost[-1].reason)
     assert rep.lost[-1].offset + rep.lost[-1].nbytes == bag.stat().st_size
-    print(f"\nframes sent {len(frames) - dropped} of {len(frames)}, detected and published {published}, "
-          f"stage readings without a frame {n_lost_stage}; killed recording: {rep.summary()}; "
-          f"{rep.lost[-1].describe()}")
     out = tmp_path / "offline"
     rc = offline.main([str(bag), "--instrument", str(cell / "ct_instrument.yaml"),
                        "--reference-object", str(cell / "reference_object.yaml"), "--out", str(out)])
@@ -109,3 +106,7 @@ def test_frame_loss_and_recorder_sigkill(tmp_path, start_node, ros_node, capsys)
     assert "[offline] lost:" in text and "without a partner" in text, text[-3000:]
     res = json.loads((out / "results.json").read_text())
     assert res["static"] is not None and res["counts"]["frames"] >= published
+    with capsys.disabled():
+        print(f"\nframes sent {len(frames) - dropped} of {len(frames)}, detected and published {published}, "
+              f"stage readings without a frame {n_lost_stage}; killed recording: {rep.summary()}; "
+              f"{rep.lost[-1].describe()}")
