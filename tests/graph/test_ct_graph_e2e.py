@@ -115,10 +115,10 @@ def test_offline_truncated_recording(campaign, tmp_path):
     res = subprocess.run([str(BIN / "ct_offline_solve"), str(half), "--out", str(tmp_path / "half_out")],
                          capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-    assert "stopped reading at byte" in res.stdout
+    assert "[offline] lost:" in res.stdout and "truncated" in res.stdout
     results = json.loads((tmp_path / "half_out" / "results.json").read_text())
     assert 12 <= results["counts"]["frames"] < N_POS * N_PROJ
-    assert any("stopped reading" in p for p in results["problems"])
+    assert any("truncated" in p for p in results["problems"])
 
     stub = tmp_path / "stub.mcap"
     stub.write_bytes(src[:200_000])

@@ -110,7 +110,7 @@ def test_truncated_recording_yields_what_is_readable(tmp_path):
     assert 8 <= len(msgs) < 20 and rep.messages_read == len(msgs)
     for i, m in enumerate(msgs):   # what was read is intact and in order
         assert np.frombuffer(bytes(m.msg.data), np.uint16)[0] == i
-    assert rep.errors and "stopped reading" in rep.errors[0] and not rep.complete
+    assert rep.errors and "truncated" in rep.errors[0] and not rep.complete
 
 
 def test_recorder_node_over_dds(tmp_path, start_node, ros_node):

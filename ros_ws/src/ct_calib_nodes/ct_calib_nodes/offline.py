@@ -46,7 +46,7 @@ from ct_calib_nodes.core.ct_pipeline import (DEFAULT_POSITION_TOLERANCE_M, Campa
 from ct_calib_nodes.core.detect import FrameError
 from ct_calib_nodes.io import ct_files
 from ct_calib_nodes.io.convert import MessageError, array_from_image, stage_from_joint_state, stamp_ns
-from ct_calib_nodes.io.mcap_io import ReadReport, iter_recording
+from ct_calib_nodes.io.mcap_io import ReadReport, RecordingError, iter_recording
 
 IMAGE, STAGE = "/ct/detector/image", "/ct/stage/joint_states"
 MODES = ("multi", "single")
@@ -183,13 +183,16 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
             return None
         return img, alpha, srd
 
+    types = {image_topic: "sensor_msgs/msg/Image", stage_topic: "sensor_msgs/msg/JointState"}
+
     def messages(raw):
         if raw:
             from ct_calib_nodes.io.raw_replay import ImageView, iter_recording_raw  # noqa: PLC0415
 
-            it = iter_recording_raw(recording, topics=(image_topic, stage_topic), raw_topics=(image_topic,), report=out.read_report)
+            it = iter_recording_raw(recording, topics=(image_topic, stage_topic), raw_topics=(image_topic,),
+                                    report=out.read_report, types=types)
         else:
-            it = iter_recording(recording, topics=(image_topic, stage_topic), report=out.read_report)
+            it = iter_recording(recording, topics=(image_topic, stage_topic), report=out.read_report, types=types)
         while True:
             c = time.process_time()
             m = next(it, None)
@@ -538,10 +541,17 @@ def main(argv=None) -> int:
         print(f"ct_offline_solve: --position-tolerance must be a positive length [m], got {args.position_tolerance}",
               file=sys.stderr)
         return 2
-    res = solve_recording(rec, instrument, ref, init_frames=args.init_frames, loss=args.loss,
-                          progress=lambda m: print(f"[offline] {m}", flush=True), namespace=namespace,
-                          position_tolerance_m=args.position_tolerance, workers=max(1, args.workers))
+    try:
+        res = solve_recording(rec, instrument, ref, init_frames=args.init_frames, loss=args.loss,
+                              progress=lambda m: print(f"[offline] {m}", flush=True), namespace=namespace,
+                              position_tolerance_m=args.position_tolerance, workers=max(1, args.workers))
+    except RecordingError as exc:      # nothing readable at all (empty folder, not MCAP)
+        print(f"ct_offline_solve: {exc}", file=sys.stderr)
+        return 2
     res.notes.append(thermal_note)
+    print(f"[offline] recording: {res.read_report.summary()}")
+    for span in res.read_report.lost:
+        print(f"[offline] lost: {span.describe()}")
     for p in res.problems[:20]:
         print(f"[offline] problem: {p}")
     if len(res.problems) > 20:

@@ -25,6 +25,7 @@ which use the installed message packages.
 from __future__ import annotations
 
 import importlib
+import io
 import json
 import os
 import pathlib
@@ -240,9 +241,12 @@ class Rosbag2McapWriter:
         empty) that becomes a rosbag2 bag with ``metadata.yaml``.
     compression : {"zstd", "lz4", ""}
         MCAP chunk compression (rosbag2's default MCAP profile uses zstd).
+    chunk_size : int
+        Uncompressed bytes after which a chunk is closed (a damaged chunk costs its own messages
+        only; a crashed writer loses the chunk in progress).
     """
 
-    def __init__(self, path, compression: str = "zstd"):
+    def __init__(self, path, compression: str = "zstd", chunk_size: int = 1024 * 1024):
         from mcap.writer import CompressionType, Writer  # noqa: PLC0415
 
         path = pathlib.Path(path)
@@ -258,7 +262,7 @@ class Rosbag2McapWriter:
             self.file_path = path / f"{path.name}_0.mcap"
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "": CompressionType.NONE}[compression]
         self._fh = open(self.file_path, "wb")
-        self._writer = Writer(self._fh, compression=comp)
+        self._writer = Writer(self._fh, compression=comp, chunk_size=int(chunk_size))
         self._writer.start(profile="ros2", library="metro ct_calib_nodes mcap_io")
         self._topics: dict[str, _Topic] = {}
         self._schemas: dict[str, int] = {}
@@ -307,6 +311,13 @@ class Rosbag2McapWriter:
                 type_name = f"{mod[0]}/msg/{type(msg).__name__}"
             self.add_topic(topic, type_name)
         self.write_raw(topic, serialize_exact(msg), log_time_ns)
+
+    def flush(self) -> None:
+        """Close the chunk in progress and hand everything written so far to the operating system:
+        a writer killed afterwards leaves a file readable up to here."""
+        if not self._closed:
+            self._writer.flush()
+            self._fh.flush()
 
     @property
     def message_count(self) -> int:
@@ -358,6 +369,27 @@ class Rosbag2McapWriter:
 
 
 # --- reader ---------------------------------------------------------------------------------------
+#
+# The MCAP records are parsed here rather than with mcap.reader.StreamReader, which stops at the
+# first damaged record: one flipped bit in an early chunk then costs the rest of the file. This
+# parser checks every chunk on its own (header consistent with the record length, size within
+# bounds, decompression, CRC of the uncompressed records) and skips only a chunk that fails,
+# then reads on. After a record whose length cannot be trusted it resynchronises on the next
+# record that has the exact layout of a chunk (opcode, length, compression name and records
+# length all consistent: a chance match is practically impossible), using the summary's chunk
+# index when the file has an intact one. What was skipped is reported: bytes, the messages the
+# file's own indexes say were there (per topic), and their log-time range.
+#
+# Allocation is bounded by the input: the file is memory-mapped, never read whole; a chunk is
+# decompressed by a streaming decompressor that stops at the size its header states, and that
+# size must not exceed ``MAX_CHUNK_BYTES``; message decoding reads slices of the chunk.
+
+MAGIC = b"\x89MCAP0\r\n"
+MAX_CHUNK_BYTES = 1 << 30          # largest uncompressed chunk accepted (a 4096^2 float frame is 64 MiB)
+_OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 1, 2, 3, 4, 5, 6
+_OP_MESSAGE_INDEX, _OP_CHUNK_INDEX, _OP_STATISTICS, _OP_DATA_END = 7, 8, 11, 15
+_COMPRESSIONS = ("", "zstd", "lz4")
+
 
 @dataclass(frozen=True)
 class RecordedMessage:
@@ -370,6 +402,35 @@ class RecordedMessage:
 
 
 @dataclass
+class LostSpan:
+    """A part of a file that could not be read.
+
+    ``messages`` is what the file's own indexes say was there (None: unknown, e.g. a truncated
+    file has no index); ``by_topic`` splits it per topic when known; ``t0_ns``/``t1_ns`` the log
+    time range of what was lost (None: unknown).
+    """
+
+    file: str
+    offset: int
+    nbytes: int
+    reason: str
+    messages: int | None = None
+    by_topic: dict = field(default_factory=dict)
+    t0_ns: int | None = None
+    t1_ns: int | None = None
+
+    def describe(self) -> str:
+        what = "an unknown number of messages" if self.messages is None else f"{self.messages} message(s)"
+        if self.by_topic:
+            what += " (" + ", ".join(f"{t}: {n}" for t, n in sorted(self.by_topic.items())) + ")"
+        when = ""
+        if self.t0_ns is not None:
+            when = f", log time {self.t0_ns} to {self.t1_ns if self.t1_ns is not None else 'end'} ns"
+        return (f"{self.file}: lost {self.nbytes} bytes at byte {self.offset}: {self.reason}; "
+                f"{what}{when}")
+
+
+@dataclass
 class ReadReport:
     """What a replay could and could not read."""
 
@@ -377,14 +438,47 @@ class ReadReport:
     messages_read: int = 0
     messages_undecodable: int = 0
     errors: list = field(default_factory=list)   # human-readable problems (truncation, CRC, decode)
+    lost: list = field(default_factory=list)     # LostSpan per unreadable part of a file
+    undecodable_by_topic: dict = field(default_factory=dict)
+    chunks_read: int = 0
+    wrong_type: int = 0                           # messages whose topic carried an unexpected type
 
     @property
     def complete(self) -> bool:
-        return not self.errors and self.messages_undecodable == 0
+        return not self.errors and self.messages_undecodable == 0 and not self.lost
+
+    @property
+    def bytes_lost(self) -> int:
+        return sum(s.nbytes for s in self.lost)
+
+    @property
+    def messages_lost(self) -> int | None:
+        """Messages the files' indexes say were in the unreadable parts (None if any part is unknown)."""
+        if any(s.messages is None for s in self.lost):
+            return None
+        return sum(s.messages for s in self.lost)
+
+    def summary(self) -> str:
+        """One line: what was read and what was lost."""
+        text = f"{self.messages_read} message(s) read from {len(self.files)} file(s)"
+        if self.lost:
+            n = self.messages_lost
+            text += (f"; {len(self.lost)} unreadable part(s), {self.bytes_lost} bytes, "
+                     f"{'an unknown number of' if n is None else n} message(s) lost")
+        if self.messages_undecodable:
+            text += f"; {self.messages_undecodable} undecodable message(s)"
+        return text
+
+
+class RecordingError(ValueError):
+    """A recording that cannot be read at all (missing, empty folder, not MCAP)."""
 
 
 def recording_files(path) -> list[pathlib.Path]:
-    """The .mcap files of a recording: the file itself, or those of a rosbag2 directory in order."""
+    """The .mcap files of a recording: the file itself, or those of a rosbag2 directory in order.
+
+    Raises RecordingError (a FileNotFoundError too) naming what is missing.
+    """
     path = pathlib.Path(path)
     if path.is_file():
         return [path]
@@ -393,7 +487,7 @@ def recording_files(path) -> list[pathlib.Path]:
         if meta.is_file():
             try:
                 info = yaml.safe_load(meta.read_text())["rosbag2_bagfile_information"]
-                files = [path / p for p in info.get("relative_file_paths", [])]
+                files = [path / pathlib.PurePath(p).name for p in info.get("relative_file_paths", [])]
                 if files and all(f.is_file() for f in files):
                     return files
             except Exception:  # noqa: BLE001 - fall back to the directory listing
@@ -401,11 +495,418 @@ def recording_files(path) -> list[pathlib.Path]:
         files = sorted(path.glob("*.mcap"))
         if files:
             return files
-        raise FileNotFoundError(f"{path} holds no .mcap file")
-    raise FileNotFoundError(f"no recording at {path}")
+        raise _NoRecording(f"{path} is a folder that holds no .mcap file (expected a .mcap file or a rosbag2 "
+                           "directory with one)")
+    raise _NoRecording(f"no recording at {path}")
 
 
-def iter_recording(path, topics=None, report: ReadReport | None = None) -> Iterator[RecordedMessage]:
+class _NoRecording(RecordingError, FileNotFoundError):
+    pass
+
+
+class _Bad(Exception):
+    """A record that fails its checks."""
+
+
+def _u16(b, o):
+    return int.from_bytes(b[o:o + 2], "little")
+
+
+def _u32(b, o):
+    return int.from_bytes(b[o:o + 4], "little")
+
+
+def _u64(b, o):
+    return int.from_bytes(b[o:o + 8], "little")
+
+
+def _need(b, o, n):
+    if o + n > len(b):
+        raise _Bad(f"record ends {o + n - len(b)} byte(s) early")
+
+
+def _str(b, o):
+    _need(b, o, 4)
+    n = _u32(b, o)
+    _need(b, o + 4, n)
+    try:
+        return bytes(b[o + 4:o + 4 + n]).decode("utf-8"), o + 4 + n
+    except UnicodeDecodeError as exc:
+        raise _Bad(f"string is not UTF-8: {exc}") from None
+
+
+def _parse_schema(c):
+    from mcap.records import Schema  # noqa: PLC0415
+
+    _need(c, 0, 2)
+    sid = _u16(c, 0)
+    name, o = _str(c, 2)
+    enc, o = _str(c, o)
+    _need(c, o, 4)
+    n = _u32(c, o)
+    _need(c, o + 4, n)
+    return Schema(id=sid, name=name, encoding=enc, data=bytes(c[o + 4:o + 4 + n]))
+
+
+def _parse_channel(c):
+    _need(c, 0, 4)
+    cid, sid = _u16(c, 0), _u16(c, 2)
+    topic, o = _str(c, 4)
+    enc, o = _str(c, o)
+    return cid, sid, topic, enc
+
+
+def _parse_chunk_header(c, total=None):
+    """(start, end, uncompressed size, crc, compression, records offset, records length) or _Bad.
+
+    ``c`` is the chunk record's content, or its first bytes with ``total`` the content length."""
+    total = len(c) if total is None else total
+    _need(c, 0, 28)
+    t0, t1, usize, crc = _u64(c, 0), _u64(c, 8), _u64(c, 16), _u32(c, 24)
+    _need(c, 28, 4)
+    n = _u32(c, 28)
+    if n > 8:
+        raise _Bad(f"compression name of {n} bytes")
+    comp = bytes(c[32:32 + n]).decode("ascii", "replace")
+    if comp not in _COMPRESSIONS:
+        raise _Bad(f"unknown chunk compression {comp!r}")
+    o = 32 + n
+    _need(c, o, 8)
+    rlen = _u64(c, o)
+    if o + 8 + rlen != total:
+        raise _Bad(f"chunk records length {rlen} does not match the record length {total}")
+    if usize > MAX_CHUNK_BYTES:
+        raise _Bad(f"chunk claims {usize} uncompressed bytes (more than the {MAX_CHUNK_BYTES} accepted)")
+    if comp == "" and usize != rlen:
+        raise _Bad(f"uncompressed chunk of {rlen} bytes claims {usize}")
+    return t0, t1, usize, crc, comp, o + 8, rlen
+
+
+def _decompress(comp: str, data, size: int) -> bytes:
+    """Decompress at most ``size`` bytes (the chunk header's size), streaming: allocation is bounded
+    by the declared size and by what the data really expands to, never by a size field inside the
+    compressed stream."""
+    if comp == "":
+        return bytes(data)
+    if comp == "zstd":
+        import zstandard  # noqa: PLC0415
+
+        try:
+            declared = zstandard.frame_content_size(data)
+        except zstandard.ZstdError as exc:
+            raise _Bad(f"zstd frame header unreadable: {exc}") from None
+        if declared == size:     # the frame states the same size as the chunk: one call, one allocation
+            out = zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+            if len(out) != size:
+                raise _Bad(f"chunk decompresses to {len(out)} bytes, its header says {size}")
+            return out
+        reader = zstandard.ZstdDecompressor().stream_reader(bytes(data), read_across_frames=True)
+    else:
+        import lz4.frame  # noqa: PLC0415
+
+        reader = lz4.frame.LZ4FrameFile(io.BytesIO(bytes(data)), mode="rb")
+    parts, got = [], 0
+    with reader:
+        while got <= size:
+            block = reader.read(min(1 << 20, size + 1 - got))
+            if not block:
+                break
+            parts.append(block)
+            got += len(block)
+    if got != size:
+        raise _Bad(f"chunk decompresses to {'more than ' if got > size else ''}{min(got, size + 1) if got <= size else size} "
+                   f"bytes, its header says {size}")
+    return b"".join(parts)
+
+
+class _FileReader:
+    """Record-level reader of one MCAP file that survives damage (see the section comment)."""
+
+    def __init__(self, file: pathlib.Path, buf, report: ReadReport):
+        self.file, self.buf, self.report = file, buf, report
+        self.size = len(buf)
+        self.schemas: dict = {}
+        self.channels: dict = {}      # id -> (topic, schema id, message encoding)
+        self.chunk_index: list = []   # (offset, length, t0, t1, message-index offsets) from the summary
+        self.stats_count = None
+        self.seen = 0                 # messages met in the data section, every topic
+        self._read_summary()
+
+    # summary: schemas and channels (so a damaged first chunk does not orphan every later one),
+    # the chunk index (resynchronisation points, lost-message counts), the statistics
+    def _read_summary(self):
+        b, n = self.buf, self.size
+        if n < 8 + 9 + 20 + 8 or bytes(b[n - 8:]) != MAGIC:
+            return
+        f = n - 8 - 29
+        if b[f] != _OP_FOOTER or _u64(b, f + 1) != 20:
+            return
+        start, crc = _u64(b, f + 9), _u32(b, f + 25)
+        if not 8 <= start < f:
+            return
+        if crc:
+            import zlib  # noqa: PLC0415
+
+            if zlib.crc32(b[start:f + 25]) != crc:
+                self.report.errors.append(f"{self.file.name}: summary section fails its CRC: not used")
+                return
+        o = start
+        try:
+            while o + 9 <= f:
+                op, ln = b[o], _u64(b, o + 1)
+                c = b[o + 9:o + 9 + ln]
+                if o + 9 + ln > f:
+                    break
+                if op == _OP_SCHEMA:
+                    s = _parse_schema(c)
+                    self.schemas[s.id] = s
+                elif op == _OP_CHANNEL:
+                    cid, sid, topic, enc = _parse_channel(c)
+                    self.channels[cid] = (topic, sid, enc)
+                elif op == _OP_CHUNK_INDEX:
+                    _need(c, 0, 36)
+                    t0, t1, off, length = _u64(c, 0), _u64(c, 8), _u64(c, 16), _u64(c, 24)
+                    m = _u32(c, 32)
+                    _need(c, 36, m)
+                    idx = {_u16(c, 36 + 10 * i): _u64(c, 38 + 10 * i) for i in range(m // 10)}
+                    self.chunk_index.append((off, length, t0, t1, idx))
+                elif op == _OP_STATISTICS:
+                    _need(c, 8, 0)
+                    self.stats_count = _u64(c, 0)
+                o += 9 + ln
+        except _Bad:
+            pass
+        self.chunk_index.sort()
+
+    def _is_chunk_at(self, o: int) -> bool:
+        b = self.buf
+        if o + 9 > self.size or b[o] != _OP_CHUNK:
+            return False
+        ln = _u64(b, o + 1)
+        if o + 9 + ln > self.size:
+            return False
+        try:
+            _parse_chunk_header(b[o + 9:o + 9 + min(ln, 64)], ln)
+        except _Bad:
+            return False
+        return True
+
+    def _is_end_at(self, o: int) -> bool:
+        b = self.buf
+        return (o + 13 <= self.size and b[o] == _OP_DATA_END and _u64(b, o + 1) == 4) or \
+               (o + 29 <= self.size and b[o] == _OP_FOOTER and _u64(b, o + 1) == 20)
+
+    def _resync(self, start: int):
+        """Offset of the next intact-looking chunk (or of the data end) at or after ``start``."""
+        for off, *_ in self.chunk_index:
+            if off >= start and self._is_chunk_at(off):
+                best = off
+                break
+        else:
+            best = None
+        b = self.buf
+        o = start
+        limit = best if best is not None else self.size
+        while o < limit:
+            o6 = b.find(bytes([_OP_CHUNK]), o, limit)
+            o15 = b.find(bytes([_OP_DATA_END]), o, limit)
+            cands = [x for x in (o6, o15) if x >= 0]
+            if not cands:
+                break
+            o = min(cands)
+            if self._is_chunk_at(o) or self._is_end_at(o):
+                return o
+            o += 1
+        return best
+
+    def _index_counts(self, after: int, chunk_off: int):
+        """Messages per channel listed by the message-index records that follow a chunk (or by the
+        summary's chunk index): {channel id: (count, t0, t1)}, or None when unknown."""
+        b = self.buf
+        out = {}
+        o = after
+        while o + 9 <= self.size and b[o] == _OP_MESSAGE_INDEX:
+            ln = _u64(b, o + 1)
+            if o + 9 + ln > self.size or ln < 6:
+                break
+            c = b[o + 9:o + 9 + ln]
+            cid, m = _u16(c, 0), _u32(c, 2)
+            if 6 + m > ln or m % 16:
+                break
+            times = [_u64(c, 6 + 16 * i) for i in range(m // 16)]
+            out[cid] = (len(times), min(times, default=None), max(times, default=None))
+            o += 9 + ln
+        if out:
+            return out
+        for off, _length, _t0, _t1, idx in self.chunk_index:
+            if off == chunk_off and idx:
+                return {cid: (self._index_len(io), None, None) for cid, io in idx.items()}
+        return None
+
+    def _index_len(self, o):
+        b = self.buf
+        if o + 15 > self.size or b[o] != _OP_MESSAGE_INDEX:
+            return 0
+        return _u32(b, o + 11) // 16
+
+    def _lost(self, offset, nbytes, reason, counts=None, t0=None, t1=None):
+        span = LostSpan(self.file.name, int(offset), int(nbytes), reason)
+        if counts is not None:
+            span.messages = sum(n for n, _a, _b in counts.values())
+            for cid, (n, a, z) in counts.items():
+                topic = self.channels.get(cid, (f"channel {cid}",))[0]
+                span.by_topic[topic] = span.by_topic.get(topic, 0) + n
+                if a is not None:
+                    t0 = a if t0 is None else min(t0, a)
+                    t1 = z if t1 is None else max(t1, z)
+        elif self.chunk_index:   # a gap: the summary knows which chunks lay in it
+            inside = [c for c in self.chunk_index if offset <= c[0] < offset + nbytes]
+            if inside:
+                span.messages = 0
+                for off, _ln, a, z, idx in inside:
+                    for cid, io in idx.items():
+                        k = self._index_len(io)
+                        span.messages += k
+                        topic = self.channels.get(cid, (f"channel {cid}",))[0]
+                        span.by_topic[topic] = span.by_topic.get(topic, 0) + k
+                    t0 = a if t0 is None else min(t0, a)
+                    t1 = z if t1 is None else max(t1, z)
+            elif nbytes and offset + nbytes >= self.size:
+                span.messages = None
+        span.t0_ns, span.t1_ns = t0, t1
+        self.report.lost.append(span)
+        self.report.errors.append(span.describe())
+
+    def records(self):
+        """Yield (opcode, content) of the data section's readable records, chunks opened."""
+        b, n = self.buf, self.size
+        if n < 8 or bytes(b[:8]) != MAGIC:
+            if n == 0:
+                raise RecordingError(f"{self.file} is empty")
+            o = self._resync(0)
+            if o is None:
+                raise RecordingError(f"{self.file} is not an MCAP file (no MCAP magic, no readable chunk)")
+            self._lost(0, o, "no MCAP magic at the start")
+        else:
+            o = 8
+        t_last = None
+        while o < n:
+            if o + 9 > n:
+                self._lost(o, n - o, "file ends inside a record header (truncated: recording not closed?)",
+                           t0=t_last)
+                return
+            op, ln = b[o], _u64(b, o + 1)
+            end = o + 9 + ln
+            if op == _OP_FOOTER or op == _OP_DATA_END and ln == 4:
+                return
+            if not 1 <= op <= 15 or end > n:
+                nxt = self._resync(o + 1)
+                if nxt is None:
+                    why = ("file ends inside a record (truncated: recording not closed?)" if 1 <= op <= 15
+                           else f"unreadable bytes (record opcode {op}) to the end of the file")
+                    self._lost(o, n - o, why, t0=t_last)
+                    return
+                self._lost(o, nxt - o, f"unreadable record (opcode {op}, length {ln}); read on at byte {nxt}")
+                o = nxt
+                continue
+            c = b[o + 9:end]
+            if op == _OP_CHUNK:
+                try:
+                    t0, t1, usize, crc, comp, ro, rl = _parse_chunk_header(c)
+                    try:
+                        data = _decompress(comp, memoryview(c)[ro:ro + rl], usize)
+                    except _Bad:
+                        raise
+                    except Exception as exc:  # noqa: BLE001 - any codec error is a damaged chunk
+                        raise _Bad(f"{comp} decompression failed: {exc}") from None
+                    if crc:
+                        import zlib  # noqa: PLC0415
+
+                        got = zlib.crc32(data)
+                        if got != crc:
+                            raise _Bad(f"CRC mismatch (stored {crc:08x}, computed {got:08x})")
+                    inner = list(self._inner(data))
+                except _Bad as exc:
+                    hdr = None
+                    try:
+                        hdr = _parse_chunk_header(c[:64], len(c))
+                    except _Bad:
+                        pass
+                    if hdr is None:     # the length itself may be wrong: find the next chunk
+                        nxt = self._resync(o + 1)
+                        nxt = n if nxt is None else nxt
+                        self._lost(o, nxt - o, f"damaged chunk: {exc}; read on at byte {nxt}")
+                        o = nxt
+                        continue
+                    self._lost(o, end - o, f"damaged chunk: {exc}", self._index_counts(end, o), hdr[0], hdr[1])
+                    o = end
+                    continue
+                self.report.chunks_read += 1
+                for rec in inner:
+                    if rec[0] == _OP_MESSAGE:
+                        t_last = rec[3]
+                    yield rec
+            elif op in (_OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE):
+                try:
+                    rec = self._one(op, c)
+                except _Bad as exc:
+                    self._lost(o, end - o, f"bad record (opcode {op}): {exc}")
+                    rec = None
+                if rec is not None:
+                    if rec[0] == _OP_MESSAGE:
+                        t_last = rec[3]
+                    yield rec
+            o = end
+        self._lost(n, 0, "file ends at a record boundary without its data-end record and summary "
+                         "(truncated, or the writer was stopped before closing it)", t0=t_last)
+
+    def _inner(self, data):
+        o, n = 0, len(data)
+        while o < n:
+            if o + 9 > n:
+                raise _Bad("chunk records end inside a record header")
+            op, ln = data[o], _u64(data, o + 1)
+            if o + 9 + ln > n:
+                raise _Bad(f"record of {ln} bytes overruns its chunk")
+            rec = self._one(op, memoryview(data)[o + 9:o + 9 + ln])
+            if rec is not None:
+                yield rec
+            o += 9 + ln
+
+    def _one(self, op, c):
+        if op == _OP_SCHEMA:
+            s = _parse_schema(c)
+            self.schemas[s.id] = s
+            return None
+        if op == _OP_CHANNEL:
+            cid, sid, topic, enc = _parse_channel(c)
+            self.channels[cid] = (topic, sid, enc)
+            return None
+        if op == _OP_MESSAGE:
+            _need(c, 0, 22)
+            self.seen += 1
+            return (_OP_MESSAGE, _u16(c, 0), _u64(c, 6), _u64(c, 14), c[22:])
+        return None
+
+
+def _schema_lacks(schema, type_name: str) -> list:
+    """Fields of the installed ``type_name`` that the schema text's own message does not define
+    (empty when it defines them all, or when the type is not installed here)."""
+    try:
+        fields = import_message_type(type_name).get_fields_and_field_types()
+    except ValueError:
+        return []
+    text = bytes(schema.data).decode("utf-8", "replace").split(SEPARATOR, 1)[0]
+    names = set()
+    for line in text.splitlines():
+        m = _FIELD.match(line.split("#", 1)[0])
+        if m:
+            names.add(m.group(0).split()[-1])
+    return [f for f in fields if f not in names]
+
+
+def iter_recording(path, topics=None, report: ReadReport | None = None,
+                   types: dict | None = None, raw_topics=()) -> Iterator[RecordedMessage]:
     """Replay a recording as a generator, in file order (log-time order for rosbag2 writers).
 
     Parameters
@@ -415,60 +916,120 @@ def iter_recording(path, topics=None, report: ReadReport | None = None) -> Itera
     topics : iterable of str, optional
         Only these topics.
     report : ReadReport, optional
-        Filled with counts and the problems met (truncation, corrupt chunks,
-        undecodable messages); reading goes on past every problem it can.
+        Filled with counts and the problems met: damaged chunks (skipped, reading goes on after
+        them), truncation, unreadable stretches, undecodable messages, each with what was lost.
+    types : dict, optional
+        ``{topic: 'pkg/msg/Type'}``: messages on these topics whose schema names another type,
+        or whose schema text lacks fields of the installed type, are counted as undecodable
+        (``report.wrong_type``) instead of yielded.
+    raw_topics : iterable of str, optional
+        Messages on these topics come undecoded: ``RecordedMessage.msg`` is a memoryview of
+        their CDR bytes (one copy out of the decompressed chunk), for readers that parse only a
+        few fields and hand the bytes on (io/raw_replay.py). Their encoding must be ``cdr``.
+
+    Raises
+    ------
+    RecordingError
+        Nothing to read at all: no recording at ``path``, a folder without .mcap, an empty file
+        or one that holds no MCAP data. Damage inside a file never raises.
     """
-    from mcap.reader import StreamReader  # noqa: PLC0415
-    from mcap.records import Channel, Chunk, Message, Schema  # noqa: PLC0415
+    import mmap  # noqa: PLC0415
+
     from mcap_ros2.decoder import DecoderFactory  # noqa: PLC0415
 
     report = report if report is not None else ReadReport()
     wanted = set(topics) if topics is not None else None
+    expect = {t: normalise_type(v) for t, v in (types or {}).items()}
+    raw = set(raw_topics)
     factory = DecoderFactory()
-    for file in recording_files(path):
-        report.files.append(str(file))
-        schemas: dict[int, Schema] = {}
-        channels: dict[int, Channel] = {}
-        decoders: dict[int, object] = {}
+
+    def bad(topic, text):
+        report.messages_undecodable += 1
+        report.undecodable_by_topic[topic] = report.undecodable_by_topic.get(topic, 0) + 1
+        if report.undecodable_by_topic[topic] <= 3:
+            report.errors.append(text)
+
+    def one_file(file):
         with open(file, "rb") as fh:
-            reader = StreamReader(fh, skip_magic=False, emit_chunks=False, validate_crcs=True)
+            size = os.fstat(fh.fileno()).st_size
+            if size == 0:
+                raise RecordingError(f"{file} is empty")
+            mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)   # slices of it are copies
             try:
-                for rec in reader.records:
-                    if isinstance(rec, Schema):
-                        schemas[rec.id] = rec
-                    elif isinstance(rec, Channel):
-                        channels[rec.id] = rec
-                    elif isinstance(rec, Message):
-                        ch = channels.get(rec.channel_id)
-                        if ch is None:
-                            report.messages_undecodable += 1
-                            continue
-                        if wanted is not None and ch.topic not in wanted:
-                            continue
-                        schema = schemas.get(ch.schema_id)
-                        dec = decoders.get(ch.id)
-                        if dec is None:
-                            try:
-                                dec = factory.decoder_for(ch.message_encoding, schema)
-                            except Exception as exc:  # noqa: BLE001
-                                dec = None
-                                report.errors.append(f"{file.name}: no decoder for {ch.topic}: {exc}")
-                            decoders[ch.id] = dec or False
-                        if not dec:
-                            report.messages_undecodable += 1
-                            continue
-                        try:
-                            msg = dec(rec.data)
-                        except Exception as exc:  # noqa: BLE001
-                            report.messages_undecodable += 1
-                            if report.messages_undecodable <= 5:
-                                report.errors.append(f"{file.name}: undecodable message on {ch.topic} "
-                                                     f"at {rec.log_time} ns: {exc}")
+                fr = _FileReader(file, mm, report)
+                decoders: dict = {}
+                for _op, cid, log_time, _pub, data in fr.records():
+                    ch = fr.channels.get(cid)
+                    if ch is None:
+                        bad(f"channel {cid}", f"{file.name}: message on unknown channel {cid} at {log_time} ns "
+                                              "(its channel record was lost)")
+                        continue
+                    topic, sid, enc = ch
+                    if wanted is not None and topic not in wanted:
+                        continue
+                    schema = fr.schemas.get(sid)
+                    tname = normalise_type(schema.name) if schema is not None and schema.name.count("/") in (1, 2) \
+                        else (schema.name if schema is not None else "")
+                    if topic in expect and tname != expect[topic]:
+                        report.wrong_type += 1
+                        bad(topic, f"{file.name}: {topic} carries {tname or 'no schema'}, expected {expect[topic]}")
+                        continue
+                    if topic in raw:
+                        if enc != "cdr":
+                            bad(topic, f"{file.name}: {topic} has message encoding {enc!r}, not cdr")
                             continue
                         report.messages_read += 1
-                        yield RecordedMessage(ch.topic, msg, rec.log_time, schema.name if schema else "")
-                    elif isinstance(rec, Chunk):
-                        pass
-            except Exception as exc:  # noqa: BLE001 - truncated or corrupt file: keep what was read
-                report.errors.append(f"{file.name}: stopped reading at byte {fh.tell()} of "
-                                     f"{os.path.getsize(file)}: {type(exc).__name__}: {exc}")
+                        yield RecordedMessage(topic, memoryview(bytes(data)), log_time, tname)
+                        continue
+                    key = (cid, sid)
+                    dec = decoders.get(key)
+                    if dec is None:
+                        try:
+                            if schema is None:
+                                raise ValueError(f"schema {sid} is missing")
+                            lacks = _schema_lacks(schema, expect[topic]) if topic in expect else []
+                            if lacks:
+                                raise ValueError(f"its schema text lacks the fields {lacks} of {expect[topic]}")
+                            dec = factory.decoder_for(enc, schema)
+                            if dec is None:
+                                raise ValueError(f"no decoder for message encoding {enc!r} "
+                                                 f"and schema encoding {schema.encoding!r}")
+                        except Exception as exc:  # noqa: BLE001 - a bad schema text is bad input
+                            report.errors.append(f"{file.name}: cannot decode {topic}: {exc}")
+                            dec = False
+                        decoders[key] = dec
+                    if not dec:
+                        bad(topic, f"{file.name}: undecodable message on {topic} at {log_time} ns")
+                        continue
+                    try:
+                        msg = dec(bytes(data))
+                    except Exception as exc:  # noqa: BLE001
+                        bad(topic, f"{file.name}: undecodable message on {topic} at {log_time} ns: "
+                                   f"{type(exc).__name__}: {exc}")
+                        continue
+                    report.messages_read += 1
+                    yield RecordedMessage(topic, msg, log_time, tname)
+                if fr.stats_count is not None and fr.seen < fr.stats_count and not fr.report.lost:
+                    report.errors.append(f"{file.name}: the summary lists {fr.stats_count} messages, "
+                                         f"{fr.seen} were found")
+            finally:
+                fr = None
+                mm.close()
+
+    files = recording_files(path)
+    failed = []
+    for file in files:
+        report.files.append(str(file))
+        try:
+            yield from one_file(file)
+        except RecordingError as exc:      # one unreadable file of several: say so, read the others
+            if len(files) == 1:
+                raise
+            failed.append(exc)
+            span = LostSpan(file.name, 0, file.stat().st_size, f"unreadable file: {exc}")
+            report.lost.append(span)
+            report.errors.append(span.describe())
+    if failed and len(failed) == len(files):
+        raise failed[0]
+    if report.lost:
+        report.errors.append(f"read with losses: {report.summary()}")

@@ -12,12 +12,11 @@ same.
 
 from __future__ import annotations
 
-import os
 import struct
 from dataclasses import dataclass
 from typing import Iterator
 
-from ct_calib_nodes.io.mcap_io import ReadReport, RecordedMessage, recording_files
+from ct_calib_nodes.io.mcap_io import ReadReport, RecordedMessage, iter_recording
 
 
 @dataclass(frozen=True)
@@ -95,66 +94,8 @@ class ImageView:
                    body[pos:pos + n])
 
 
-def iter_recording_raw(path, topics=None, raw_topics=(), report: ReadReport | None = None
-                       ) -> Iterator[RecordedMessage]:
-    """Like ``mcap_io.iter_recording``, but the messages of ``raw_topics`` come as CDR bytes
-    (``RecordedMessage.msg`` is a memoryview), the others decoded."""
-    from mcap.reader import StreamReader  # noqa: PLC0415
-    from mcap.records import Channel, Message, Schema  # noqa: PLC0415
-    from mcap_ros2.decoder import DecoderFactory  # noqa: PLC0415
-
-    report = report if report is not None else ReadReport()
-    wanted = set(topics) if topics is not None else None
-    raw = set(raw_topics)
-    factory = DecoderFactory()
-    for file in recording_files(path):
-        report.files.append(str(file))
-        schemas, channels, decoders = {}, {}, {}
-        with open(file, "rb") as fh:
-            reader = StreamReader(fh, skip_magic=False, emit_chunks=False, validate_crcs=True)
-            try:
-                for rec in reader.records:
-                    if isinstance(rec, Schema):
-                        schemas[rec.id] = rec
-                    elif isinstance(rec, Channel):
-                        channels[rec.id] = rec
-                    elif isinstance(rec, Message):
-                        ch = channels.get(rec.channel_id)
-                        if ch is None:
-                            report.messages_undecodable += 1
-                            continue
-                        if wanted is not None and ch.topic not in wanted:
-                            continue
-                        schema = schemas.get(ch.schema_id)
-                        name = schema.name if schema else ""
-                        if ch.topic in raw:
-                            if ch.message_encoding != "cdr":
-                                report.messages_undecodable += 1
-                                continue
-                            report.messages_read += 1
-                            yield RecordedMessage(ch.topic, memoryview(rec.data), rec.log_time, name)
-                            continue
-                        dec = decoders.get(ch.id)
-                        if dec is None:
-                            try:
-                                dec = factory.decoder_for(ch.message_encoding, schema)
-                            except Exception as exc:  # noqa: BLE001
-                                dec = None
-                                report.errors.append(f"{file.name}: no decoder for {ch.topic}: {exc}")
-                            decoders[ch.id] = dec or False
-                        if not dec:
-                            report.messages_undecodable += 1
-                            continue
-                        try:
-                            msg = dec(rec.data)
-                        except Exception as exc:  # noqa: BLE001
-                            report.messages_undecodable += 1
-                            if report.messages_undecodable <= 5:
-                                report.errors.append(f"{file.name}: undecodable message on {ch.topic} "
-                                                     f"at {rec.log_time} ns: {exc}")
-                            continue
-                        report.messages_read += 1
-                        yield RecordedMessage(ch.topic, msg, rec.log_time, name)
-            except Exception as exc:  # noqa: BLE001 - truncated or corrupt file: keep what was read
-                report.errors.append(f"{file.name}: stopped reading at byte {fh.tell()} of "
-                                     f"{os.path.getsize(file)}: {type(exc).__name__}: {exc}")
+def iter_recording_raw(path, topics=None, raw_topics=(), report: ReadReport | None = None,
+                       types: dict | None = None) -> Iterator[RecordedMessage]:
+    """Like ``mcap_io.iter_recording`` (same reader: damaged chunks skipped and reported), but
+    the messages of ``raw_topics`` come as CDR bytes (``RecordedMessage.msg`` is a memoryview)."""
+    return iter_recording(path, topics=topics, report=report, types=types, raw_topics=raw_topics)

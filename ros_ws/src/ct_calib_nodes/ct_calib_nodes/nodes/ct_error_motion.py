@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import time
 
+import numpy as np
 from builtin_interfaces.msg import Time
 from metro_msgs.msg import CtGeometry, ErrorMap, SphereObservationArray
 from metro_msgs.srv import TriggerSolve
@@ -30,6 +31,7 @@ from rclpy.node import Node
 from ct_calib_nodes.core.ct_pipeline import campaign_error_map, solve_campaign_position, static_result_from_estimate
 from ct_calib_nodes.io.results import error_map_msg, estimate_msg, static_from_geometry_msg
 from ct_calib_nodes.nodes import plant
+from ct_calib_nodes.nodes.bad_input import BadInputCounter
 from ct_calib_nodes.nodes.runner import (CT_FILE_PARAMS, QOS_LATCHED, QOS_RELIABLE_STREAM, ObservationIntake,
                                          declare_parameters, load_ct_files, run_node)
 
@@ -49,6 +51,7 @@ class CtErrorMotion(Node):
         super().__init__("ct_error_motion")
         self.p = declare_parameters(self, PARAMS)
         self.instrument, self.ref = load_ct_files(self.p, self.get_logger())
+        self.bad_input = BadInputCounter(self.get_logger())
         self.intake = ObservationIntake(self, self.ref)
         self.acc = self.intake.acc
         self.static = None
@@ -56,8 +59,10 @@ class CtErrorMotion(Node):
         self.solved_frames = {m: {} for m in MODES}  # mode -> {k: n_frames at solve}
         self.pubs = {"multi": self.create_publisher(ErrorMap, "ct/error_map", QOS_LATCHED),
                      "single": self.create_publisher(ErrorMap, "ct/error_map/single", QOS_LATCHED)}
-        self.create_subscription(SphereObservationArray, "ct/observations", self._on_obs, QOS_RELIABLE_STREAM)
-        self.create_subscription(CtGeometry, "ct/geometry", self._on_geometry, QOS_LATCHED)
+        self.create_subscription(SphereObservationArray, "ct/observations",
+                                 self.bad_input.guard("ct/observations", self._on_obs), QOS_RELIABLE_STREAM)
+        self.create_subscription(CtGeometry, "ct/geometry", self.bad_input.guard("ct/geometry", self._on_geometry),
+                                 QOS_LATCHED)
         self.create_service(TriggerSolve, "~/solve", self._on_solve)
         self.create_timer(0.5, self._on_timer)
         self.history = plant.HistoryHook(self, str(self.p["history_db"]))
@@ -77,11 +82,16 @@ class CtErrorMotion(Node):
         self.diagnostics = plant.Diagnostics(self, self.diagnose)
 
     def _on_geometry(self, msg):
+        vals = np.asarray(msg.static_estimate.values, dtype=float)
+        if vals.size < 13 or not np.all(np.isfinite(vals[:13])):
+            self.intake.bad_messages += 1
+            self.bad_input.report("ct/geometry", f"static geometry has {vals.size} values, not 13 finite ones")
+            return
         try:
             w, cov, _geom, code = static_from_geometry_msg(msg, self.ref.centres_of_m)
         except ValueError as exc:
             self.intake.bad_messages += 1
-            self.get_logger().warning(f"skipped bad ct/geometry: {exc}")
+            self.bad_input.report("ct/geometry", exc)
             return
         if code != 0:
             self.get_logger().error(f"static geometry is not usable (status {code}: {msg.static_estimate.status.message}); "
@@ -115,6 +125,7 @@ class CtErrorMotion(Node):
             self._solve_complete(final=False)      # position k-1 just completed
 
     def _on_timer(self):
+        self.bad_input.maybe_summarise()
         if self.intake.idle_for(float(self.p["idle_solve_s"])):
             self._solve_complete(final=True)
 

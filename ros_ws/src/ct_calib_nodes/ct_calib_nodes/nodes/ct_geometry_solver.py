@@ -19,6 +19,7 @@ from rclpy.node import Node
 from ct_calib_nodes.core.ct_pipeline import solve_campaign_static
 from ct_calib_nodes.io.results import geometry_msg
 from ct_calib_nodes.nodes import plant
+from ct_calib_nodes.nodes.bad_input import BadInputCounter
 from ct_calib_nodes.nodes.runner import (CT_FILE_PARAMS, QOS_LATCHED, QOS_RELIABLE_STREAM, ObservationIntake,
                                          declare_parameters, load_ct_files, run_node)
 
@@ -53,12 +54,14 @@ class CtGeometrySolver(Node):
         super().__init__("ct_geometry_solver")
         self.p = declare_parameters(self, PARAMS)
         self.instrument, self.ref = load_ct_files(self.p, self.get_logger())
+        self.bad_input = BadInputCounter(self.get_logger())
         self.intake = ObservationIntake(self, self.ref)
         self.acc = self.intake.acc
         self.solved_n_frames = -1
         self.result = None
         self.pub = self.create_publisher(CtGeometry, "ct/geometry", QOS_LATCHED)
-        self.create_subscription(SphereObservationArray, "ct/observations", self._on_obs, QOS_RELIABLE_STREAM)
+        self.create_subscription(SphereObservationArray, "ct/observations",
+                                 self.bad_input.guard("ct/observations", self._on_obs), QOS_RELIABLE_STREAM)
         self.create_service(TriggerSolve, "~/solve", self._on_solve)
         self.create_timer(0.5, self._on_timer)
         self.history = plant.HistoryHook(self, str(self.p["history_db"]))
@@ -87,6 +90,7 @@ class CtGeometrySolver(Node):
             self._solve("the stage moved to position 2")
 
     def _on_timer(self):
+        self.bad_input.maybe_summarise()
         idle = float(self.p["idle_solve_s"])
         if self.result is None and self.intake.idle_for(idle) and self.acc.positions:
             self._solve(f"no observations for {idle:.1f} s")

@@ -7,7 +7,10 @@ and rejected spheres with reasons, is published on ``/ct/observations``
 (metro_msgs/SphereObservationArray, same stamp as the frame). Identity is
 initialised from the frames of each stage position themselves (the first
 ``init_frames`` of a position are published together once it is). Bad frames and
-unpaired messages are logged, counted and skipped; the node keeps running.
+unpaired messages are logged (rate-limited), counted and skipped; the node keeps running.
+The pairing buffers are bounded (``pair_max_pending`` messages and ``pair_max_bytes`` bytes
+per stream, oldest dropped first, besides ``pair_timeout_s``): frames whose stage readings
+never come cannot make the node grow.
 
 Keeping up: the node measures its processing time per frame and the interval
 between frame stamps (both smoothed); when it processes slower than frames come,
@@ -31,14 +34,19 @@ from ct_calib_nodes.core.ct_pipeline import FrameProcessor, FrameRateMonitor
 from ct_calib_nodes.core.detect import FrameError
 from ct_calib_nodes.io.convert import MessageError, array_from_image, stage_from_joint_state, stamp_ns
 from ct_calib_nodes.io.observations_out import observation_array_msg
+from ct_calib_nodes.nodes.bad_input import BadInputCounter
+from ct_calib_nodes.nodes.pairing import StampPairer
 from ct_calib_nodes.nodes.runner import (CT_FILE_PARAMS, POSITION_PARAMS, QOS_RELIABLE_STREAM, declare_parameters,
                                          load_ct_files, run_node)
 
+IMAGE, STAGE = "ct/detector/image", "ct/stage/joint_states"   # relative: a namespace moves the cell
 PARAMS = {
     **CT_FILE_PARAMS,
     **POSITION_PARAMS,
     "init_frames": (6, "frames used to initialise sphere identity at each stage position [count]"),
     "pair_timeout_s": (120.0, "drop an image or stage reading left unpaired this long [s]"),
+    "pair_max_pending": (100, "most unpaired images (and stage readings) held, oldest dropped first [count]"),
+    "pair_max_bytes": (256 * 1024 * 1024, "most bytes of unpaired images held, oldest dropped first [bytes]"),
     "reliable": (True, "reliable subscriptions (complete campaigns); false = sensor-data QoS for best-effort drivers"),
 }
 
@@ -51,15 +59,17 @@ class CtSphereDetector(Node):
         self.proc = FrameProcessor(self.ref, self.instrument.detector, self.instrument.sdd_reported_m,
                                    self.instrument.flat_field_counts, init_frames=int(p["init_frames"]),
                                    srd_tolerance_m=float(p["position_tolerance_m"]))
-        self.images, self.stages = {}, {}     # stamp_ns -> (msg, arrival time)
+        self.pairer = StampPairer(int(p["pair_max_pending"]), int(p["pair_max_bytes"]), float(p["pair_timeout_s"]))
+        self.bad_input = BadInputCounter(self.get_logger())
         self.counts = {"frames": 0, "bad_frames": 0, "bad_stage": 0, "unpaired": 0, "published": 0,
                        "falling_behind": 0}
         self.rate = FrameRateMonitor()
         self._last_lag_warning = -1e9
+        self._dropped_logged = 0
         qos = QOS_RELIABLE_STREAM if p["reliable"] else qos_profile_sensor_data
         self.pub = self.create_publisher(SphereObservationArray, "ct/observations", QOS_RELIABLE_STREAM)
-        self.create_subscription(Image, "ct/detector/image", self._on_image, qos)
-        self.create_subscription(JointState, "ct/stage/joint_states", self._on_stage, qos)
+        self.create_subscription(Image, IMAGE, self.bad_input.guard(IMAGE, self._on_image), qos)
+        self.create_subscription(JointState, STAGE, self.bad_input.guard(STAGE, self._on_stage), qos)
         self.create_timer(1.0, self._expire)
         from ct_calib_nodes.nodes import plant  # noqa: PLC0415
         self.rates = {"image": plant.RateMeter(), "stage": plant.RateMeter()}
@@ -68,38 +78,34 @@ class CtSphereDetector(Node):
 
     def _on_image(self, msg):
         self.rates["image"].tick()
-        self.images[stamp_ns(msg.header.stamp)] = (msg, time.monotonic())
-        self._pair(stamp_ns(msg.header.stamp))
+        t = stamp_ns(msg.header.stamp)
+        pair = self.pairer.add("image", t, msg, len(msg.data))
+        if pair:
+            self._pair(t, *pair)
 
     def _on_stage(self, msg):
         self.rates["stage"].tick()
-        self.stages[stamp_ns(msg.header.stamp)] = (msg, time.monotonic())
-        self._pair(stamp_ns(msg.header.stamp))
+        t = stamp_ns(msg.header.stamp)
+        pair = self.pairer.add("stage", t, msg, 64 + 16 * len(msg.position) + sum(len(n) for n in msg.name))
+        if pair:
+            self._pair(t, *pair)
 
-    def _pair(self, t):
-        if t not in self.images or t not in self.stages:
-            return
-        img, _ = self.images.pop(t)
-        js, _ = self.stages.pop(t)
+    def _pair(self, t, img, js):
         self.counts["frames"] += 1
         try:
             alpha, srd = stage_from_joint_state(js)
         except MessageError as exc:
             self.counts["bad_stage"] += 1
-            self.get_logger().warning(f"frame {t}: skipped, bad stage reading: {exc}")
+            self.bad_input.report(STAGE, exc)
             return
         c0 = time.monotonic()
         try:
             image, enc = array_from_image(img, (self.instrument.detector.rows, self.instrument.detector.cols))
             results = self.proc.push(t, image, enc, alpha, srd)
             self._keep_up(t, time.monotonic() - c0)
-        except (MessageError, FrameError) as exc:
+        except (MessageError, FrameError, ValueError) as exc:   # never take the node down
             self.counts["bad_frames"] += 1
-            self.get_logger().warning(f"frame {t}: skipped ({self.counts['bad_frames']} bad so far): {exc}")
-            return
-        except ValueError as exc:       # anything else the core refuses: never take the node down
-            self.counts["bad_frames"] += 1
-            self.get_logger().error(f"frame {t}: skipped, the frame pipeline refused it: {exc}")
+            self.bad_input.report(IMAGE, exc)
             return
         for fr in results:
             self._publish(fr)
@@ -128,12 +134,17 @@ class CtSphereDetector(Node):
                                    f"{len(fr.flag) - n_ok} rejected; counts {self.counts}")
 
     def _expire(self):
-        now, limit = time.monotonic(), float(self.p["pair_timeout_s"])
-        for store, what in ((self.images, "image"), (self.stages, "stage reading")):
-            for t in [t for t, (_m, ta) in store.items() if now - ta > limit]:
-                store.pop(t)
-                self.counts["unpaired"] += 1
-                self.get_logger().warning(f"dropped unpaired {what} stamped {t} ns (no partner within {limit} s)")
+        self.pairer.expire()
+        self.counts["unpaired"] = self.pairer.total_dropped()
+        now = time.monotonic()
+        if self.counts["unpaired"] != self._dropped_logged and now - getattr(self, "_dropped_t", 0.0) > 10.0:
+            self._dropped_logged, self._dropped_t = self.counts["unpaired"], now
+            self.get_logger().warning(
+                f"{self.counts['unpaired']} unpaired message(s) dropped so far {self.pairer.dropped} "
+                f"(bounds: {self.pairer.max_count} messages, {self.pairer.max_bytes} bytes, "
+                f"{self.pairer.timeout_s:g} s); pending {self.pairer.pending('image')} image(s), "
+                f"{self.pairer.pending('stage')} stage reading(s)")
+        self.bad_input.maybe_summarise()
 
     def diagnose(self):
         from ct_calib_nodes.nodes import plant  # noqa: PLC0415
@@ -142,15 +153,16 @@ class CtSphereDetector(Node):
         values = {"image rate [1/s]": self.rates["image"].rate(), "stage rate [1/s]": self.rates["stage"].rate(),
                   "frames": c["frames"], "published": c["published"], "bad frames": c["bad_frames"],
                   "bad stage readings": c["bad_stage"], "unpaired dropped": c["unpaired"],
-                  "queue: images waiting for a stage reading": len(self.images),
-                  "queue: stage readings waiting for an image": len(self.stages)}
+                  "queue: images waiting for a stage reading": self.pairer.pending("image"),
+                  "queue: stage readings waiting for an image": self.pairer.pending("stage")}
         new = {k: c[k] - self.last_counts.get(k, 0) for k in ("bad_frames", "bad_stage", "unpaired")}
         self.last_counts = dict(c)
         if any(new.values()):
             return plant.WARN, ("in the last second: " + ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in new.items()
                                                                     if v)), values
-        if len(self.images) + len(self.stages) > 50:
-            return plant.WARN, f"{len(self.images) + len(self.stages)} messages wait for their partner", values
+        waiting = self.pairer.pending("image") + self.pairer.pending("stage")
+        if waiting > 50:
+            return plant.WARN, f"{waiting} messages wait for their partner", values
         return plant.OK, "running" if c["frames"] else "waiting for frames", values
 
     def close(self):
@@ -161,7 +173,10 @@ class CtSphereDetector(Node):
                 self._publish(fr)
             except Exception:  # noqa: BLE001 - the context is already shut down (Ctrl-C): nothing can be sent
                 lost += 1
-        msg = f"detector counts: {self.counts}"
+        self.counts["unpaired"] = self.pairer.total_dropped()
+        self.bad_input.maybe_summarise(force=True)
+        msg = (f"detector counts: {self.counts}; dropped unpaired {self.pairer.dropped}; "
+               f"pairing peak {self.pairer.peak}; bad input {self.bad_input.total}")
         if lost:
             msg += (f"; {lost} frame(s) still held for identity initialisation were not published "
                     "(stopped before the position completed)")

@@ -24,6 +24,11 @@ discovery_period_s : double
     How often to look for new topics [s].
 compression : str
     MCAP chunk compression: zstd, lz4 or none.
+flush_period_s : double
+    Crash safety: every this often the chunk in progress is closed and handed to the
+    operating system, so a recorder killed (SIGKILL, power cut of the process) leaves a file
+    that readers take up to its last complete chunk: at most this much recording is lost
+    (plus what DDS still held). 0 = only when a chunk fills (1 MiB).
 """
 
 from __future__ import annotations
@@ -42,6 +47,7 @@ PARAMS = {
     "topics": ([""], "topics to record; empty = all"),
     "discovery_period_s": (0.2, "topic discovery period [s]"),
     "compression": ("zstd", "MCAP chunk compression: zstd, lz4, none"),
+    "flush_period_s": (1.0, "close the chunk in progress and flush the file this often (crash safety) [s]; 0 = off"),
 }
 
 
@@ -65,6 +71,9 @@ class McapRecorder(Node):
         self.writer = Rosbag2McapWriter(output, compression="" if comp == "none" else comp)
         self.subs = {}
         self.timer = self.create_timer(float(p["discovery_period_s"]), self._discover)
+        self._flushed_count = 0
+        if float(p["flush_period_s"]) > 0:
+            self.flush_timer = self.create_timer(float(p["flush_period_s"]), self._flush)
         self._discover()
         self.get_logger().info(f"recording {sorted(self.wanted) if self.wanted else 'all topics'}"
                                f"{' under ' + self.prefix if self.prefix and not self.wanted else ''} to {output}")
@@ -96,6 +105,11 @@ class McapRecorder(Node):
             self.get_logger().info(f"recording {topic} [{type_name}] "
                                    f"({'reliable' if reliable else 'best effort'}, "
                                    f"{'transient local' if latched else 'volatile'})")
+
+    def _flush(self):
+        if self.writer.message_count != self._flushed_count:     # no empty chunks while idle
+            self.writer.flush()
+            self._flushed_count = self.writer.message_count
 
     def _on_raw(self, topic: str, data: bytes):
         self.writer.write_raw(topic, data, self.get_clock().now().nanoseconds)

@@ -44,6 +44,9 @@ def run_node(node_factory, args=None) -> int:
             close = getattr(node, "close", None)
             if close is not None:
                 close()
+            bad = getattr(node, "bad_input", None)     # nodes/bad_input.py: totals on the way out
+            if bad is not None:
+                bad.log_totals()
             node.destroy_node()
         rclpy.try_shutdown()
     return code
@@ -119,7 +122,11 @@ class ObservationIntake:
             k = self.acc.add_frame(*frame_observations(msg, self.id_to_index))
         except (MessageError, ValueError) as exc:
             self.bad_messages += 1
-            self.node.get_logger().warning(f"skipped bad observation message #{self.bad_messages}: {exc}")
+            reporter = getattr(self.node, "bad_input", None)      # counted, logged rate-limited
+            if reporter is not None:
+                reporter.report("/ct/observations", exc)
+            else:
+                self.node.get_logger().warning(f"skipped bad observation message #{self.bad_messages}: {exc}")
             return None
         self.last_rx = time.monotonic()
         return k
