@@ -208,9 +208,14 @@ class DetectionSettings:
     overlap_darkness: float | None = 1.5
     proximity_margin_px: float = 4.0
     border_margin_px: float = 1.0
-    vertical_background: bool = True
     background_window_px: int | None = None
-    repair_horizontal_steps: bool = True
+    n_orientations: int = 6
+    snap_deg: float = 1.5
+    exclusion_px: float = 3.0
+    background_span_px: float = 6.0
+    max_background_misfit: float = 3.0
+    hot_pixel_sigma: float = 6.0
+    orientation_from_frame: bool = True
     background_edge_gradient: float = 0.04
     background_edge_min_fraction: float = 0.05
     background_edge_sigma_px: float = 0.012
@@ -310,6 +315,8 @@ class FrameDetections:
     success: bool
     message: str
     nfev: int = 0
+    n_hot_pixels: np.ndarray | None = None
+    hot_pixels_px: np.ndarray | None = None
 
     def __len__(self):
         return self.centre_px.shape[0]
@@ -342,20 +349,35 @@ class FrameDetections:
 
 # --------------------------------------------------------------------------- frame checks
 
+#: Encodings accepted (INTERFACES.md mono16 semantics for the integer ones: raw counts, the bit
+#: depth, hence the saturation level, from the encoding).
+ENCODING_FULL_SCALE = {"mono16": 65535, "16UC1": 65535, "mono8": 255, "8UC1": 255}
+ENCODINGS = tuple(ENCODING_FULL_SCALE) + ("32FC1",)
+
+
 def to_transmission(image, encoding: str = "mono16", flat_field_counts=None,
-                    expected_shape=None, _convert: bool = True) -> np.ndarray | None:
-    """Check one frame and convert it to transmission.
+                    expected_shape=None, dark=None) -> np.ndarray:
+    """Check one frame and convert it to transmission (the flat-field stage).
 
     Parameters
     ----------
     image : array_like of shape (rows, cols)
-        ``mono16``: unsigned 16-bit counts. ``32FC1``: transmission I/I0 (any
-        float dtype).
-    encoding : {"mono16", "32FC1"}
+        Integer encodings (``mono16``, ``16UC1``, ``mono8``, ``8UC1``): raw counts
+        of that bit depth. ``32FC1``: transmission I/I0 (any float dtype).
+    encoding : str
+        One of ``ENCODINGS``.
     flat_field_counts : float or ndarray of shape (rows, cols), optional
-        Open-beam counts (``mono16`` only). None: the frame's own median.
+        Open-beam counts (integer encodings only): a scalar (ct_instrument.yaml's
+        ``flat_field_counts``) or a flat-field image. None: the frame's own median.
+        A scalar above the encoding's full scale (the file's mono16 value for a
+        mono8 frame) does not describe these frames and is replaced by the
+        frame's median (the detector normalises locally, so only the frame
+        checks use the absolute level).
     expected_shape : tuple (rows, cols), optional
         From ct_instrument.yaml; a mismatch is a ``wrong_size`` FrameError.
+    dark : float or ndarray of shape (rows, cols), optional
+        Dark (offset) counts subtracted from the frame and the flat field:
+        ``T = (I - dark) / (flat - dark)``.
 
     Returns
     -------
@@ -364,10 +386,10 @@ def to_transmission(image, encoding: str = "mono16", flat_field_counts=None,
     Raises
     ------
     FrameError
-        Wrong dtype/encoding/size, NaN/inf, all dark, saturated, uniform.
+        Wrong dtype/encoding/size, NaN/inf, all dark, saturated, uniform, bad flat/dark.
     """
-    if encoding not in ("mono16", "32FC1"):
-        raise FrameError("wrong_encoding", f"encoding must be 'mono16' or '32FC1', got {encoding!r}")
+    if encoding not in ENCODINGS:
+        raise FrameError("wrong_encoding", f"encoding must be one of {ENCODINGS}, got {encoding!r}")
     img = np.asarray(image)
     if img.ndim != 2:
         raise FrameError("wrong_size", f"image must be 2-D (rows, cols), got shape {img.shape}")
@@ -379,40 +401,34 @@ def to_transmission(image, encoding: str = "mono16", flat_field_counts=None,
     if img.shape[0] < 16 or img.shape[1] < 16:
         raise FrameError("wrong_size", f"image {img.shape} is too small")
     sub = img[::8, ::8]
-    if encoding == "mono16":
-        if img.dtype != np.uint16:
-            raise FrameError("wrong_dtype", f"mono16 frames must be uint16, got {img.dtype}")
-        if np.count_nonzero(sub == 65535) > 0.5 * sub.size:
-            raise FrameError("saturated", "more than half of the pixels are at 65535 counts")
-        if flat_field_counts is None or (not _convert and np.ndim(flat_field_counts) == 0):
-            if flat_field_counts is None:
-                i0 = float(np.median(sub))
-                if i0 <= 0.0:
-                    raise FrameError("all_dark", "median count is 0 and no flat field was given")
-            else:
-                i0 = float(flat_field_counts)
-                if not (np.isfinite(i0) and i0 > 0):
-                    raise FrameError("bad_flat_field", f"flat_field_counts must be > 0, got {i0}")
-            if not _convert:
-                med = float(np.median(sub)) / i0
-                if med < 0.02:
-                    raise FrameError("all_dark", f"median transmission {med:.3g} < 0.02 (beam off or shutter closed)")
-                if int(sub.max()) == int(sub.min()) and int(img.max()) == int(img.min()):
-                    raise FrameError("uniform", f"every pixel has the same value {int(img.flat[0])} "
-                                                "(no signal, no noise)")
-                return None
-            trans = img.astype(np.float32) * np.float32(1.0 / i0)
+    if encoding != "32FC1":
+        full = ENCODING_FULL_SCALE[encoding]
+        want = np.uint16 if full == 65535 else np.uint8
+        if img.dtype != want:
+            raise FrameError("wrong_dtype", f"{encoding} frames must be {np.dtype(want).name}, got {img.dtype}")
+        if np.count_nonzero(sub == full) > 0.5 * sub.size:
+            raise FrameError("saturated", f"more than half of the pixels are at {full} counts (full scale)")
+        d = _dark_level(dark, img.shape)
+        if flat_field_counts is None or (np.ndim(flat_field_counts) == 0 and float(flat_field_counts) > full):
+            i0 = float(np.median(sub)) - (float(np.median(d[::8, ::8])) if np.ndim(d) else float(d))
+            if i0 <= 0.0:
+                raise FrameError("all_dark", "median count is at or below the dark level and no flat field was given")
+            ff = np.float32(i0)
         else:
-            ff = np.asarray(flat_field_counts, dtype=np.float64)
+            ff = np.asarray(flat_field_counts, dtype=np.float32)
             if ff.ndim == 0:
                 if not (np.isfinite(ff) and ff > 0):
                     raise FrameError("bad_flat_field", f"flat_field_counts must be > 0, got {ff}")
-                trans = img.astype(np.float32) * np.float32(1.0 / float(ff))
-            else:
-                if ff.shape != img.shape or not np.all(np.isfinite(ff)) or np.any(ff <= 0):
-                    raise FrameError("bad_flat_field", "flat field must be a positive scalar or a finite "
-                                                       f"positive array of shape {img.shape}")
-                trans = (img.astype(np.float32) / ff.astype(np.float32))
+            elif ff.shape != img.shape or not np.all(np.isfinite(ff)):
+                raise FrameError("bad_flat_field", "flat field must be a positive scalar or a finite "
+                                                   f"array of shape {img.shape}, got shape {ff.shape}")
+            ff = ff - d
+            if np.any(ff <= 0):
+                raise FrameError("bad_flat_field", "flat field minus dark must be > 0 everywhere")
+        num = img.astype(np.float32)
+        if np.ndim(d) or d:
+            num -= d
+        trans = num / ff if np.ndim(ff) else num * np.float32(1.0 / float(ff))
     else:
         if not np.issubdtype(img.dtype, np.floating):
             raise FrameError("wrong_dtype", f"32FC1 frames must be floating point, got {img.dtype}")
@@ -427,6 +443,20 @@ def to_transmission(image, encoding: str = "mono16", flat_field_counts=None,
     if float(np.ptp(tsub)) == 0.0 and float(np.ptp(trans)) == 0.0:
         raise FrameError("uniform", f"every pixel has the same value {med:.6g} (no signal, no noise)")
     return trans
+
+
+def _dark_level(dark, shape):
+    """Dark counts as float32 scalar or array, checked."""
+    if dark is None:
+        return np.float32(0.0)
+    d = np.asarray(dark, dtype=np.float32)
+    if d.ndim == 0:
+        if not (np.isfinite(d) and d >= 0):
+            raise FrameError("bad_flat_field", f"dark level must be finite and >= 0, got {float(d)}")
+        return np.float32(d)
+    if d.shape != tuple(shape) or not np.all(np.isfinite(d)):
+        raise FrameError("bad_flat_field", f"dark image must be finite with shape {tuple(shape)}, got {d.shape}")
+    return d
 
 
 # --------------------------------------------------------------------------- helpers
@@ -566,28 +596,31 @@ def _check_range(diameter_px_range):
 
 def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, expected_shape=None,
                    diameter_px_range=None, settings: DetectionSettings | None = None,
-                   sdd_px: float | None = None, principal_point_px=None) -> FrameDetections:
+                   sdd_px: float | None = None, principal_point_px=None, dark=None) -> FrameDetections:
     """Find and measure every sphere shadow in one projection.
 
     Parameters
     ----------
     image : array_like of shape (rows, cols)
-        ``mono16`` uint16 counts or ``32FC1`` transmission.
-    encoding : {"mono16", "32FC1"}
+        Counts (``mono16``/``16UC1`` uint16, ``mono8``/``8UC1`` uint8) or ``32FC1`` transmission.
+    encoding : str
+        One of ``ENCODINGS``.
     flat_field_counts : float or ndarray of shape (rows, cols), optional
-        Open-beam counts for ``mono16`` (ct_instrument.yaml).
+        Open-beam counts (scalar or flat-field image, ct_instrument.yaml).
     expected_shape : tuple (rows, cols), optional
         Detector size from ct_instrument.yaml.
     diameter_px_range : tuple (min, max), optional
-        Expected shadow diameters [px] from the nominal geometry (sphere
-        diameter x magnification range / pixel pitch). Without it only shape
-        and contrast screen the blobs.
+        Expected shadow diameters [px] from the nominal geometry (see
+        :func:`shadow_diameter_range_px`). Without it only shape and contrast
+        screen the blobs.
     settings : DetectionSettings, optional
     sdd_px : float, optional
         Nominal source-to-detector distance in pixels; enables
         ``centre_corrected_px``.
     principal_point_px : array_like of shape (2,), optional
         Defaults to the detector centre ((cols-1)/2, (rows-1)/2).
+    dark : float or ndarray of shape (rows, cols), optional
+        Dark (offset) counts.
 
     Returns
     -------
@@ -602,214 +635,518 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
     """
     st = settings if settings is not None else DetectionSettings()
     drange = _check_range(diameter_px_range)
-    fast16 = (st.vertical_background and encoding == "mono16"
-              and (flat_field_counts is None or np.ndim(flat_field_counts) == 0))
-    trans = to_transmission(image, encoding, flat_field_counts, expected_shape, _convert=not fast16)
-    rows, cols = np.asarray(image).shape
-    bg = float(np.median(trans[::8, ::8])) if trans is not None else 1.0
-    if st.vertical_background:
-        if st.background_window_px is not None:
-            win = int(st.background_window_px)
-        elif drange is not None:
-            win = int(2.0 * drange[1] * (1.0 + st.size_tolerance)) + 9
+    trans = to_transmission(image, encoding, flat_field_counts, expected_shape, dark)     # 1 flat field
+    noise = _noise_level(trans)
+    hot = _repair_hot_pixels(trans, noise, st)                                            # 2 hot pixels
+    bg = _segmentation_background(trans, st, drange)                                      # 3 background
+    rej = _Rejections()
+    cand = _candidates(trans, bg, st, drange, rej)                                        # 4 candidates
+    if len(cand.index) == 0:
+        return _assemble([], rej, 0, sdd_px, principal_point_px, trans.shape, hot, "no sphere shadow accepted")
+    model = _local_backgrounds(trans, bg, cand, st)                                       # 5 local background
+    meas = _measure_edges_and_fit(trans, model, cand, st)                                 # 6 edges + 7 fit
+    accepted = _screen_fits(meas, cand, model, st, drange, rej)                           # 8 rejection
+    accepted = _centre_uncertainty(accepted, meas, model, st)                             # 9 uncertainty
+    return _assemble(accepted, rej, meas.n_fits, sdd_px, principal_point_px, trans.shape, hot, "",
+                     meas=meas, cand=cand)
+
+
+class _Rejections:
+    """Refused candidates, in order."""
+
+    def __init__(self):
+        self.centre, self.area, self.reason, self.detail = [], [], [], []
+
+    def add(self, centre, area, reason, detail):
+        self.centre.append(np.asarray(centre, dtype=np.float64))
+        self.area.append(float(area))
+        self.reason.append(reason)
+        self.detail.append(detail)
+
+
+def shadow_diameter_range_px(diameters_m, centres_of_m, sdd_m: float, srd_m: float, pixel_pitch_m: float):
+    """Nominal (min, max) shadow diameter [px] of a reference object at a stage position.
+
+    The object's extent along the beam is taken from the reference object itself (the
+    largest distance of a sphere centre from the centroid, plus the sphere radius), so
+    nothing is assumed about its size; 0.6 / 1.5 of the extreme magnifications leave room
+    for an object off the axis and for an SDD/SRD that differ from the nominal ones.
+    """
+    d = np.asarray(diameters_m, dtype=float)
+    c = np.asarray(centres_of_m, dtype=float).reshape(-1, 3)
+    extent = float(np.max(np.linalg.norm(c - c.mean(axis=0), axis=1))) + 0.5 * float(d.max())
+    m_hi = sdd_m / max(srd_m - extent, 0.01)
+    m_lo = sdd_m / (srd_m + extent)
+    return 0.6 * float(d.min()) * m_lo / pixel_pitch_m, 1.5 * float(d.max()) * m_hi / pixel_pitch_m
+
+
+# --------------------------------------------------------------------------- stage 1-2: noise, hot pixels
+
+def _noise_level(trans) -> float:
+    """Robust sd of the pixel noise at the open-beam level, from neighbouring-pixel differences."""
+    sub = trans[1:-1:4, 1:-1:2]
+    d = np.diff(sub, axis=1).ravel()
+    s = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2.0)
+    return max(s, 1e-6)
+
+
+_RING3 = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], np.uint8)
+
+
+def _repair_hot_pixels(trans, noise, st):
+    """Single pixels brighter (darker) than all 8 neighbours by more than ``hot_pixel_sigma``
+    noise sd (a detector blurred over ~1 px cannot make one): replaced in place by the mean of
+    their neighbours. Returns their (col, row) positions (K, 2)."""
+    if not st.hot_pixel_sigma:
+        return np.zeros((0, 2))
+    k = np.float32(st.hot_pixel_sigma * noise)
+    mx = cv2.dilate(trans, _RING3, borderType=cv2.BORDER_REPLICATE)
+    mn = cv2.erode(trans, _RING3, borderType=cv2.BORDER_REPLICATE)
+    bad = (trans > mx + k) | (trans < mn - k)
+    r, c = np.nonzero(bad)
+    if r.size:
+        if r.size > 0.01 * trans.size:       # not isolated defects: leave the frame alone
+            return np.zeros((0, 2))
+        rows, cols = trans.shape
+        acc = np.zeros(r.size, np.float64)
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                if dr or dc:
+                    acc += trans[np.clip(r + dr, 0, rows - 1), np.clip(c + dc, 0, cols - 1)]
+        trans[r, c] = acc / 8.0
+    return np.column_stack([c, r]).astype(np.float64)
+
+
+# --------------------------------------------------------------------------- stage 3: segmentation background
+
+def _segmentation_background(trans, st, drange):
+    """Background for segmentation: the pointwise minimum of morphological closings of the
+    frame with line segments of ``n_orientations`` directions, longer than a shadow.
+
+    Every closing removes each sphere shadow (shorter than the line in every direction) and
+    keeps straight steps of any orientation (plate edges, field stops: a monotone profile is
+    its own closing); the minimum keeps dark bands (tube walls, a plate seen edge-on) that
+    are long in at least one of the directions. Computed at half resolution (area average,
+    which also lowers the noise) and interpolated back. float32 (rows, cols)."""
+    if st.background_window_px is not None:
+        win = int(st.background_window_px)
+    elif drange is not None:
+        win = int(1.5 * drange[1] * (1.0 + st.size_tolerance)) + 7
+    else:
+        win = 61
+    rows, cols = trans.shape
+    half = cv2.resize(trans, (cols // 2, rows // 2), interpolation=cv2.INTER_AREA)
+    h = max(3, win // 2) | 1
+    out = None
+    for k in range(int(st.n_orientations)):
+        th = np.pi * k / int(st.n_orientations)
+        ker = _line_kernel(h, th)
+        c = cv2.morphologyEx(half, cv2.MORPH_CLOSE, ker, borderType=cv2.BORDER_REPLICATE)
+        out = c if out is None else np.minimum(out, c, out=out)
+    bg = cv2.resize(out, (cols, rows), interpolation=cv2.INTER_LINEAR)
+    np.maximum(bg, np.float32(1e-6), out=bg)
+    return bg
+
+
+_KERNELS = {}
+
+
+def _line_kernel(length, theta):
+    key = (int(length), round(float(theta), 6))
+    ker = _KERNELS.get(key)
+    if ker is None:
+        c, s = np.cos(theta), np.sin(theta)
+        if abs(s) < 1e-9:
+            ker = np.ones((1, length), np.uint8)
+        elif abs(c) < 1e-9:
+            ker = np.ones((length, 1), np.uint8)
         else:
-            win = 61
-        win += 1 - win % 2
-        kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (1, win))
-        # morphology on 16-bit integers is ~2x faster than on float32 in OpenCV
-        raw = np.asarray(image)
-        if fast16:
-            bg16 = cv2.morphologyEx(cv2.blur(raw, (1, 3)), cv2.MORPH_CLOSE, kernel)
-            np.maximum(bg16, 1, out=bg16)
-            trans = cv2.divide(raw, bg16, dtype=cv2.CV_32F)
-        else:
-            u16 = (np.minimum(trans, np.float32(3.99)) * np.float32(16384.0)).astype(np.uint16)
-            bg16 = cv2.morphologyEx(cv2.blur(u16, (1, 3)), cv2.MORPH_CLOSE, kernel)
-            np.maximum(bg16, 1, out=bg16)
-            trans = cv2.divide(trans, bg16.astype(np.float32), scale=16384.0, dtype=cv2.CV_32F)
-        bg = 1.0
-    thr = np.float32(bg * (1.0 - st.segment_depth))
-    mask = (trans < thr).view(np.uint8)
+            h = length // 2
+            w_ = int(np.ceil(abs(c) * h)), int(np.ceil(abs(s) * h))
+            ker = np.zeros((2 * w_[1] + 1, 2 * w_[0] + 1), np.uint8)
+            cv2.line(ker, (int(round(w_[0] - c * h)), int(round(w_[1] - s * h))),
+                     (int(round(w_[0] + c * h)), int(round(w_[1] + s * h))), 1, 1)
+        _KERNELS[key] = ker
+    return ker
+
+
+# --------------------------------------------------------------------------- stage 4: candidates
+
+@dataclass
+class _Candidates:
+    index: np.ndarray       # (C,) component index
+    centre: np.ndarray      # (C, 2) centroid (col, row)
+    radius: np.ndarray      # (C,) equivalent radius of the thresholded blob
+    area: np.ndarray        # (C,)
+    shadows: np.ndarray     # (rows, cols) uint8: 1 on compact shadows (grown by 2 px)
+
+
+def _candidates(trans, bg, st, drange, rej):
+    """Threshold frame / background, label components, screen them (size, border, shape,
+    proximity); merged blobs (a sphere on a dark band that is not removed) are split by a
+    binary opening with a disk smaller than a shadow and the pieces screened again."""
+    rows, cols = trans.shape
+    ratio = cv2.divide(trans, bg)
+    thr = np.float32(1.0 - st.segment_depth)
+    mask = (ratio < thr).view(np.uint8)
     n_lab, labels, stats, cents = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    stats = stats[1:]
+    stats = stats[1:].astype(np.int64)
     cents = cents[1:].astype(np.float64)
-
-    rej_c, rej_a, rej_r, rej_d = [], [], [], []
-
-    def reject(i, reason, detail):
-        rej_c.append(cents[i])
-        rej_a.append(float(stats[i, cv2.CC_STAT_AREA]))
-        rej_r.append(reason)
-        rej_d.append(detail)
-
-    area = stats[:, cv2.CC_STAT_AREA].astype(np.float64)
-    d_eq = 2.0 * np.sqrt(area / np.pi)
     if drange is not None:
         dmin = drange[0] * (1.0 - st.size_tolerance)
         dmax = drange[1] * (1.0 + st.size_tolerance)
     else:
         dmin, dmax = 4.0, np.inf
     single_area_max = np.pi * dmax ** 2 / 4.0
-
-    # --- cheap screening on component statistics
-    cand = []
-    for i in range(stats.shape[0]):
-        x0, y0, w, h = (int(v) for v in stats[i, :4])
-        if d_eq[i] < dmin:
-            reject(i, "not_a_sphere_size", f"diameter {d_eq[i]:.1f} px < {dmin:.1f} px")
+    area = stats[:, cv2.CC_STAT_AREA].astype(np.float64)
+    d_eq = 2.0 * np.sqrt(area / np.pi)
+    extra_stats, extra_cents, extra_lab = [], [], []
+    # split merged blobs: opening with a disk of ~0.6 dmin keeps shadow cores, drops thin bands
+    if np.isfinite(dmax):
+        big = np.nonzero((d_eq > dmax) | (np.maximum(stats[:, 2], stats[:, 3])
+                                           > 1.6 * st.max_axis_ratio * np.maximum(1, np.minimum(stats[:, 2], stats[:, 3]))))[0]
+        if big.size:
+            kd = max(3, int(0.6 * dmin)) | 1
+            disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (kd, kd))
+            for i in big:
+                x0, y0, w, h = (int(v) for v in stats[i, :4])
+                roi = (labels[y0:y0 + h, x0:x0 + w] == i + 1).view(np.uint8)
+                op = cv2.morphologyEx(roi, cv2.MORPH_OPEN, disk)
+                n2, lab2, st2, ce2 = cv2.connectedComponentsWithStats(op, connectivity=8)
+                for j in range(1, n2):
+                    a2 = st2[j, cv2.CC_STAT_AREA]
+                    if a2 < 0.5 * np.pi * dmin ** 2 / 4.0 or a2 > single_area_max:
+                        continue
+                    x2, y2, w2, h2 = st2[j, :4]
+                    if max(w2, h2) > 1.3 * st.max_axis_ratio * max(1, min(w2, h2)):
+                        continue
+                    sub = (lab2[y2:y2 + h2, x2:x2 + w2] == j)
+                    extra_stats.append([x0 + x2, y0 + y2, w2, h2, a2])
+                    extra_cents.append([ce2[j, 0] + x0, ce2[j, 1] + y0])
+                    extra_lab.append(sub)
+    cand, c_cent, c_rad, c_area = [], [], [], []
+    all_stats = [stats[i] for i in range(stats.shape[0])] + [np.asarray(s) for s in extra_stats]
+    all_cents = list(cents) + [np.asarray(c, float) for c in extra_cents]
+    n_main = stats.shape[0]
+    split_parent = set()
+    if extra_stats:
+        for i in big:
+            split_parent.add(int(i))
+    for i in range(len(all_stats)):
+        s_ = all_stats[i]
+        x0, y0, w, h = (int(v) for v in s_[:4])
+        a = float(s_[4])
+        de = 2.0 * np.sqrt(a / np.pi)
+        cx, cy = all_cents[i]
+        piece = i >= n_main
+        if not piece and i in split_parent:
+            # its pieces are screened on their own; the remainder is a band or a merged pair
+            if de > dmax and a > 3.5 * single_area_max:
+                continue
+        if de < dmin:
+            if not piece:
+                rej.add((cx, cy), a, "not_a_sphere_size", f"diameter {de:.1f} px < {dmin:.1f} px")
             continue
-        if d_eq[i] > dmax:
-            if area[i] <= 3.5 * single_area_max:
-                reject(i, "overlap", f"blob area {area[i]:.0f} px^2 exceeds one sphere "
-                                     f"({single_area_max:.0f} px^2): merged shadows")
+        if de > dmax:
+            if a <= 3.5 * single_area_max:
+                rej.add((cx, cy), a, "overlap", f"blob area {a:.0f} px^2 exceeds one sphere "
+                                                f"({single_area_max:.0f} px^2): merged shadows")
             else:
-                reject(i, "not_a_sphere_size", f"blob area {area[i]:.0f} px^2 is larger than three spheres")
+                rej.add((cx, cy), a, "not_a_sphere_size", f"blob area {a:.0f} px^2 is larger than three spheres")
             continue
-        r0 = 0.5 * d_eq[i]
+        r0 = 0.5 * de
         reach = r0 + max(0.5 * r0, 4.0) + st.border_margin_px + 1.0
-        cx, cy = cents[i]
         touches = x0 <= 0 or y0 <= 0 or x0 + w >= cols or y0 + h >= rows
         if touches or cx - reach < 0 or cy - reach < 0 or cx + reach > cols - 1 or cy + reach > rows - 1:
-            reject(i, "edge_cut", "shadow touches the image border" if touches
-                   else "measuring annulus leaves the image")
+            rej.add((cx, cy), a, "edge_cut", "shadow touches the image border" if touches
+                    else "measuring annulus leaves the image")
             continue
         aspect = max(w, h) / max(1, min(w, h))
         if aspect > 1.6 * st.max_axis_ratio:
-            reject(i, "overlap", f"blob bounding box aspect {aspect:.2f}: merged shadows")
+            rej.add((cx, cy), a, "overlap", f"blob bounding box aspect {aspect:.2f}: merged shadows")
             continue
-        # second moments of the blob: axis ratio and filling of its moment ellipse
-        mom = cv2.moments((labels[y0:y0 + h, x0:x0 + w] == i + 1).view(np.uint8), binaryImage=True)
+        blob = extra_lab[i - n_main] if piece else (labels[y0:y0 + h, x0:x0 + w] == i + 1)
+        mom = cv2.moments(blob.view(np.uint8), binaryImage=True)
         mu20, mu02, mu11 = mom["mu20"] / mom["m00"], mom["mu02"] / mom["m00"], mom["mu11"] / mom["m00"]
         tr_, dd_ = mu20 + mu02, np.sqrt(max((mu20 - mu02) ** 2 + 4 * mu11 ** 2, 0.0))
         l1, l2 = 0.5 * (tr_ + dd_), 0.5 * (tr_ - dd_)
         m_ratio = np.sqrt(l1 / l2) if l2 > 0 else np.inf
         if m_ratio > st.max_axis_ratio:
-            reject(i, "overlap", f"blob moment axis ratio {m_ratio:.2f} > {st.max_axis_ratio}: merged shadows")
+            rej.add((cx, cy), a, "overlap", f"blob moment axis ratio {m_ratio:.2f} > {st.max_axis_ratio}: "
+                                            "merged shadows")
             continue
         cand.append(i)
-
-    # --- proximity: penumbrae of neighbours interact. Compared against every
-    # blob of noticeable size, including rejected ones (a merged pair or the
-    # tube's band still casts its shadow), by the distance to its bounding box.
+        c_cent.append((cx, cy))
+        c_rad.append(r0)
+        c_area.append(a)
+    # proximity: penumbrae of neighbours interact; compared with every compact blob of
+    # noticeable size (accepted or not), by centre distance minus both radii
+    keep = []
     if cand:
-        others = np.nonzero(d_eq >= max(3.0, 0.5 * dmin))[0]
-        x0b = stats[others, 0].astype(np.float64) - 0.5
-        y0b = stats[others, 1].astype(np.float64) - 0.5
-        x1b = x0b + stats[others, 2]
-        y1b = y0b + stats[others, 3]
-        wb, hb = stats[others, 2], stats[others, 3]
-        roundish = (d_eq[others] <= dmax) & (np.maximum(wb, hb) <= 1.3 * np.minimum(wb, hb))
-        keep = []
-        for i in cand:
-            cx, cy = cents[i]
-            gx = np.maximum(np.maximum(x0b - cx, cx - x1b), 0.0)
-            gy = np.maximum(np.maximum(y0b - cy, cy - y1b), 0.0)
-            gap = np.hypot(gx, gy) - 0.5 * d_eq[i]
-            # round single-sphere blobs: centre distance minus both radii
-            gap = np.where(roundish, np.hypot(cents[others, 0] - cx, cents[others, 1] - cy)
-                           - 0.5 * d_eq[i] - 0.5 * d_eq[others], gap)
+        allc = np.array(all_cents).reshape(-1, 2)
+        alla = np.array([float(s_[4]) for s_ in all_stats])
+        alld = 2.0 * np.sqrt(alla / np.pi)
+        others = np.nonzero((alld >= max(3.0, 0.5 * dmin)) & (alld <= dmax))[0]
+        others = np.array([o for o in others if o not in split_parent], dtype=np.intp)
+        for k, i in enumerate(cand):
+            cx, cy = c_cent[k]
+            gap = np.hypot(allc[others, 0] - cx, allc[others, 1] - cy) - c_rad[k] - 0.5 * alld[others]
             gap[others == i] = np.inf
-            k = int(np.argmin(gap))
-            if gap[k] < st.proximity_margin_px:
-                reject(i, "overlap", f"gap {max(gap[k], 0.0):.1f} px to a neighbouring shadow "
-                                     f"< {st.proximity_margin_px:.1f} px")
+            g = float(np.min(gap)) if gap.size else np.inf
+            if g < st.proximity_margin_px:
+                rej.add((cx, cy), c_area[k], "overlap", f"gap {max(g, 0.0):.1f} px to a neighbouring shadow "
+                                                        f"< {st.proximity_margin_px:.1f} px")
             else:
-                keep.append(i)
-        cand = keep
+                keep.append(k)
+    # pixels of every compact shadow (not of bands or steps), grown by 2 px for the blurred rims:
+    # the local background models leave them out
+    lut = np.zeros(n_lab, np.uint8)
+    compact = (d_eq >= 0.5 * dmin) & (area <= 3.5 * single_area_max)
+    lut[1:][compact] = 1
+    if split_parent:
+        lut[1:][np.array(sorted(split_parent))] = 0
+    shadows = lut[labels]
+    for (x0, y0, w, h, _), sub in zip(extra_stats, extra_lab):
+        shadows[y0:y0 + h, x0:x0 + w] |= sub.view(np.uint8)
+    shadows = cv2.dilate(shadows, np.ones((5, 5), np.uint8))
+    return _Candidates(index=np.array([cand[k] for k in keep], dtype=np.intp),
+                       centre=np.array([c_cent[k] for k in keep], dtype=np.float64).reshape(-1, 2),
+                       radius=np.array([c_rad[k] for k in keep], dtype=np.float64),
+                       area=np.array([c_area[k] for k in keep], dtype=np.float64),
+                       shadows=shadows)
 
-    if st.vertical_background and st.repair_horizontal_steps and cand:
-        corners = _repair_horizontal_steps(trans, bg16, stats, cand, rows, cols)
-        for i in corners:
-            reject(i, "background_structure", "a horizontal background step (tube end rim) meets a stronger "
-                                              "vertical one (wall band) across the shadow: no background fits")
-        dropped = set(corners)
-        cand = [i for i in cand if i not in dropped]
 
-    n_fits = 0
-    if not cand:
-        return _assemble([], rej_c, rej_a, rej_r, rej_d, bg, n_fits, sdd_px, principal_point_px, trans.shape,
-                         "no sphere shadow accepted")
+# --------------------------------------------------------------------------- stage 5: local background
 
-    # --- sub-pixel edges along rays (vectorised over candidates)
-    cand = np.array(cand)
-    nc = len(cand)
-    centre = cents[cand].copy()
-    radius = 0.5 * d_eq[cand]
+@dataclass
+class _LocalBackground:
+    """Per candidate: background B(u, v) = a(u) + b(u) v on a grid turned so that u runs across
+    the dominant background structure (steps, bands) and v along it."""
+    origin: np.ndarray      # (C, 2) grid origin (integer pixel)
+    eu: np.ndarray          # (C, 2) unit vector of u in the image
+    ev: np.ndarray          # (C, 2)
+    umin: int               # first u of the grid (u = umin + index)
+    a: np.ndarray           # (C, U)
+    b: np.ndarray           # (C, U)
+    edge_gradient: np.ndarray  # (C, U) relative change of a over +-2 px of u
+    structure: np.ndarray   # (C,) rms misfit of the model on the background samples / noise
+    coherence: np.ndarray   # (C,)
+
+
+def _local_backgrounds(trans, bg, cand, st):
+    """Background of each shadow from its surroundings, with no assumption about the holder.
+
+    The direction of the strongest background structure around the shadow comes from the
+    structure tensor of the (shadow-free) segmentation background; orientations within
+    ``snap_deg`` of the pixel axes are snapped to them (exact pixel sampling). On a grid
+    turned to that direction (u across, v along the structure) each line of constant u is fitted
+    by a straight line in v through the samples outside the shadow (radius + ``exclusion_px``,
+    darker samples of neighbours dropped in a second round), so a step or band of any
+    orientation through the shadow, and any smooth gradient, are interpolated across it."""
+    c = cand.centre
+    nc = c.shape[0]
+    r = cand.radius
+    rows, cols = trans.shape
+    # orientation from the structure tensor of bg in a box round each candidate
+    hw = int(np.ceil(r.max() * 1.6 + 6))
+    gy, gx = np.mgrid[-hw:hw + 1, -hw:hw + 1]
+    ci = np.rint(c).astype(np.intp)
+    yy = np.clip(ci[:, 1, None, None] + gy[None], 1, rows - 2)
+    xx = np.clip(ci[:, 0, None, None] + gx[None], 1, cols - 2)
+    sm = cv2.blur(trans, (3, 3)) if st.orientation_from_frame else bg
+    keep = (cand.shadows[yy, xx] == 0) if st.orientation_from_frame else 1.0
+    bx = (sm[yy, xx + 1] - sm[yy, xx - 1]) * keep
+    by = (sm[yy + 1, xx] - sm[yy - 1, xx]) * keep
+    jxx = np.sum(bx * bx, axis=(1, 2), dtype=np.float64)
+    jyy = np.sum(by * by, axis=(1, 2), dtype=np.float64)
+    jxy = np.sum(bx * by, axis=(1, 2), dtype=np.float64)
+    theta = 0.5 * np.arctan2(2 * jxy, jxx - jyy)            # direction of the strongest gradient
+    coh = np.sqrt((jxx - jyy) ** 2 + 4 * jxy ** 2) / np.maximum(jxx + jyy, 1e-30)
+    snap = np.deg2rad(st.snap_deg)
+    q = np.round(theta / (0.5 * np.pi)) * (0.5 * np.pi)
+    theta = np.where(np.abs(theta - q) < snap, q, theta)
+    eu = np.stack([np.cos(theta), np.sin(theta)], axis=1)
+    eu = np.where(np.abs(eu) < 1e-12, 0.0, eu)
+    ev = np.stack([-eu[:, 1], eu[:, 0]], axis=1)
+    # grid
+    w_out = np.maximum(0.5 * r, 4.0)
+    rex = r + st.exclusion_px
+    U = int(np.ceil(np.max(r + w_out))) + 3
+    V = int(np.ceil(np.max(rex + np.maximum(0.5 * r, st.background_span_px))))
+    us = np.arange(-U, U + 1, dtype=np.float64)
+    vs = np.arange(-V, V + 1, dtype=np.float64)
+    origin = np.rint(c)
+    px = origin[:, 0, None, None] + eu[:, 0, None, None] * us[None, :, None] + ev[:, 0, None, None] * vs[None, None, :]
+    py = origin[:, 1, None, None] + eu[:, 1, None, None] * us[None, :, None] + ev[:, 1, None, None] * vs[None, None, :]
+    inside = (px >= 0) & (px <= cols - 1) & (py >= 0) & (py <= rows - 1)
+    s = _bilinear(trans, np.clip(px, 0, cols - 1), np.clip(py, 0, rows - 1))
+    dx = px - c[:, 0, None, None]
+    dy = py - c[:, 1, None, None]
+    noise = _noise_level(trans)
+    dark = cand.shadows
+    ix = np.clip(np.rint(px).astype(np.intp), 0, cols - 1)
+    iy = np.clip(np.rint(py).astype(np.intp), 0, rows - 1)
+    wgt = (inside & (dx * dx + dy * dy > (rex * rex)[:, None, None]) & (dark[iy, ix] == 0)).astype(np.float64)
+    vv = vs[None, None, :]
+    a, b = _line_fit(s, wgt, vv)
+    # second round: drop samples more than 4 noise sd below the first fit
+    fit = a[:, :, None] + b[:, :, None] * vv
+    wgt2 = wgt * (s > fit - 4.0 * noise * fit)
+    a, b = _line_fit(s, wgt2, vv)
+    fit = a[:, :, None] + b[:, :, None] * vv
+    res = (s - fit) * wgt2
+    n_used = np.maximum(np.sum(wgt2, axis=(1, 2)), 1.0)
+    structure = np.sqrt(np.sum(res * res, axis=(1, 2)) / n_used) / (noise * np.maximum(np.median(a, axis=1), 1e-6))
+    ap = np.pad(a, ((0, 0), (2, 2)), mode="edge")
+    grad = np.abs(ap[:, 4:] - ap[:, :-4]) / np.maximum(a, 1e-6)
+    return _LocalBackground(origin=origin, eu=eu, ev=ev, umin=-U, a=a, b=b, edge_gradient=grad,
+                            structure=structure, coherence=coh)
+
+
+def _line_fit(s, w, v):
+    """Weighted straight line s = a + b v along the last axis; constant where one side is empty."""
+    s0 = np.sum(w, axis=2)
+    s1 = np.sum(w * v, axis=2)
+    s2 = np.sum(w * v * v, axis=2)
+    sy = np.sum(w * s, axis=2)
+    syv = np.sum(w * s * v, axis=2)
+    det = s0 * s2 - s1 * s1
+    n_lo = np.sum(w * (v < 0), axis=2)
+    n_hi = np.sum(w * (v > 0), axis=2)
+    two = (n_lo >= 2) & (n_hi >= 2) & (det > 1e-9)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = np.where(two, (sy * s2 - s1 * syv) / det, sy / np.maximum(s0, 1e-12))
+        b = np.where(two, (s0 * syv - s1 * sy) / det, 0.0)
+    # a line with no usable sample at all: nearest usable line
+    empty = s0 < 1
+    if np.any(empty):
+        for k in np.nonzero(empty.any(axis=1))[0]:
+            good = np.nonzero(~empty[k])[0]
+            if good.size == 0:
+                a[k] = 1.0
+                continue
+            bad = np.nonzero(empty[k])[0]
+            a[k, bad] = np.interp(bad, good, a[k, good])
+            b[k, bad] = 0.0
+    return a, b
+
+
+def _background_at(model, x, y):
+    """B of every candidate at image points x, y of shape (C, ...)."""
+    ox = model.origin[:, 0].reshape((-1,) + (1,) * (x.ndim - 1))
+    oy = model.origin[:, 1].reshape((-1,) + (1,) * (x.ndim - 1))
+    eux = model.eu[:, 0].reshape(ox.shape)
+    euy = model.eu[:, 1].reshape(ox.shape)
+    u = (x - ox) * eux + (y - oy) * euy
+    v = (x - ox) * (-euy) + (y - oy) * eux
+    n = model.a.shape[1]
+    fu = np.clip(u - model.umin, 0.0, n - 1.000001)
+    i0 = np.floor(fu).astype(np.intp)
+    f = fu - i0
+    C = x.shape[0]
+    flat_i = (np.arange(C).reshape(ox.shape) * n + i0)
+    a = model.a.ravel()
+    b = model.b.ravel()
+    a_u = a[flat_i] * (1 - f) + a[flat_i + 1] * f
+    b_u = b[flat_i] * (1 - f) + b[flat_i + 1] * f
+    return a_u + b_u * v, u
+
+
+# --------------------------------------------------------------------------- stage 6-7: edges and fits
+
+@dataclass
+class _Measurement:
+    ok: np.ndarray
+    why: list
+    fits: np.ndarray        # (C, 5)
+    n_pts: np.ndarray
+    rms: np.ndarray
+    s2: np.ndarray          # (C,) dof-corrected edge variance
+    normals: list           # per candidate (nx, ny) arrays of the final fit
+    qmin: np.ndarray
+    edge_frac: np.ndarray   # fraction of edge points on a strong background edge
+    n_fits: int
+
+
+def _edge_points(trans, model, centre, radius, st, first, level):
+    """Sub-pixel edge points along rays (vectorised over candidates).
+
+    Pass 1: ``n_rays/2`` rays over the whole edge zone, which also measure the inner shadow
+    level (the iso-level is half way between the local background, 1, and that level);
+    later passes: ``n_rays`` rays on a narrow band round the previous fit. Returns
+    (ex, ey, valid, level, qmin, on_edge (C, R) bool, n_rays)."""
+    nc = centre.shape[0]
+    nr = max(16, int(st.n_rays) // 2) if (first and st.n_passes > 1) else int(st.n_rays)
+    phi = (np.arange(nr) + 0.5) * (2 * np.pi / nr)
+    cphi, sphi = np.cos(phi), np.sin(phi)
+    if first:
+        ns = int(st.n_samples)
+        w_out = np.maximum(0.5 * radius, 4.0)
+        w_in = np.minimum(w_out, 0.6 * radius)
+    else:
+        ns = max(8, int(st.n_samples) // 2)
+        w_out = np.minimum(np.maximum(0.25 * radius, 3.0), 0.5 * radius)
+        w_in = w_out
+    t = np.linspace(0.0, 1.0, ns)
+    r_s = (radius - w_in)[:, None] + (w_in + w_out)[:, None] * t[None, :]
+    xs = centre[:, 0, None, None] + cphi[None, :, None] * r_s[:, None, :]
+    ys = centre[:, 1, None, None] + sphi[None, :, None] * r_s[:, None, :]
+    prof = _bilinear(trans, xs, ys)
+    bgl, _ = _background_at(model, xs, ys)
+    q = prof / bgl
+    qmin = None
+    if first:
+        n_in = max(2, ns // 10)
+        q_in = np.median(q[:, :, :n_in].reshape(nc, -1), axis=1)
+        qmin = np.minimum(np.min(q[:, :, :n_in], axis=(1, 2)), q_in)
+        level = 1.0 - st.edge_level * (1.0 - q_in)
+    below = q < level[:, None, None]
+    last = ns - 1 - np.argmax(below[:, :, ::-1], axis=2)
+    valid = below.any(axis=2) & (last < ns - 1) & (last > 0)
+    k = np.clip(last, 0, ns - 2)
+    q0 = np.take_along_axis(q, k[..., None], axis=2)[..., 0]
+    q1 = np.take_along_axis(q, (k + 1)[..., None], axis=2)[..., 0]
+    dq = q1 - q0
+    valid &= dq > 0
+    frac = np.where(valid, (level[:, None] - q0) / np.where(dq > 0, dq, 1.0), 0.0)
+    dr = (w_in + w_out) / (ns - 1)
+    r_edge = r_s[np.arange(nc)[:, None], k] + frac * dr[:, None]
+    ex = centre[:, 0, None] + cphi[None, :] * r_edge
+    ey = centre[:, 1, None] + sphi[None, :] * r_edge
+    # edge points where the background itself changes fast across the structure (> gradient
+    # over 4 px): a band or step edge, whose sub-pixel mixing with the shadow no division undoes
+    _, u = _background_at(model, ex, ey)
+    n = model.a.shape[1]
+    iu = np.clip(np.rint(u - model.umin).astype(np.intp), 0, n - 1)
+    g = np.take_along_axis(model.edge_gradient, iu, axis=1)
+    on_edge = valid & (g > st.background_edge_gradient)
+    return ex, ey, valid, level, qmin, on_edge, nr
+
+
+def _measure_edges_and_fit(trans, model, cand, st):
+    """Edge points and ellipse fits, ``n_passes`` passes, each re-centred on the previous fit;
+    the last pass removes outliers (5 robust sd, at least 0.1 px) once and refits."""
+    nc = cand.centre.shape[0]
+    centre = cand.centre.copy()
+    radius = cand.radius.copy()
     ok = np.ones(nc, bool)
+    why = [""] * nc
     fits = np.full((nc, 5), np.nan)
     n_pts = np.zeros(nc, int)
     rms = np.full(nc, np.nan)
-    cov = np.full((nc, 2, 2), np.nan)
-    why = [""] * nc
-    level = None
+    s2 = np.full(nc, np.nan)
+    normals = [None] * nc
     edge_frac = np.zeros(nc)
+    level = qmin = None
+    n_fits = 0
     for pas in range(int(st.n_passes)):
         first = pas == 0
-        # pass 1: coarse rays over the whole edge zone, also measures the local
-        # background plane and the iso-level; later passes: full ray count on a
-        # narrow band round the previous fit, re-using background and level.
-        nr = max(16, int(st.n_rays) // 2) if (first and st.n_passes > 1) else int(st.n_rays)
-        phi = (np.arange(nr) + 0.5) * (2 * np.pi / nr)
-        cphi, sphi = np.cos(phi), np.sin(phi)
+        last_pass = pas == int(st.n_passes) - 1
+        ex, ey, valid, level, qm, on_edge, nr = _edge_points(trans, model, centre, radius, st, first, level)
         if first:
-            ns = int(st.n_samples)
-            w_out = np.maximum(0.5 * radius, 4.0)
-            w_in = np.minimum(w_out, 0.6 * radius)
-        else:
-            ns = max(8, int(st.n_samples) // 2)
-            w_out = np.minimum(np.maximum(0.25 * radius, 3.0), 0.5 * radius)
-            w_in = w_out
-        t = np.linspace(0.0, 1.0, ns)
-        r_s = (radius - w_in)[:, None] + (w_in + w_out)[:, None] * t[None, :]           # (C, S)
-        dxs = cphi[None, :, None] * r_s[:, None, :]                                      # (C, R, S)
-        dys = sphi[None, :, None] * r_s[:, None, :]
-        prof = _bilinear(trans, centre[:, 0, None, None] + dxs, centre[:, 1, None, None] + dys)
-        if first:
-            # local planar background from the outer 20 % of each profile
-            n_out = max(3, ns // 5)
-            ob = prof[:, :, -n_out:]
-            oxs = dxs[:, :, -n_out:]
-            oys = dys[:, :, -n_out:]
-            b0 = np.median(ob.reshape(nc, -1), axis=1)
-            # ring samples darkened by a neighbour's tail do not enter the plane
-            wr = (ob > b0[:, None, None] * (1.0 - 0.5 * st.segment_depth)).astype(np.float64)
-            res0 = (ob - b0[:, None, None]) * wr
-            bx = np.sum(res0 * oxs, axis=(1, 2)) / np.maximum(np.sum(wr * oxs ** 2, axis=(1, 2)), 1e-9)
-            by = np.sum(res0 * oys, axis=(1, 2)) / np.maximum(np.sum(wr * oys ** 2, axis=(1, 2)), 1e-9)
-            bg_origin = centre.copy()
-        offx = centre[:, 0] - bg_origin[:, 0]
-        offy = centre[:, 1] - bg_origin[:, 1]
-        bgl = ((b0 + bx * offx + by * offy)[:, None, None] + bx[:, None, None] * dxs
-               + by[:, None, None] * dys)
-        q = prof / bgl
-        if first:
-            n_in = max(2, ns // 10)
-            q_in = np.median(q[:, :, :n_in].reshape(nc, -1), axis=1)
-            qmin = np.minimum(np.min(q[:, :, :n_in], axis=(1, 2)), q_in)
-            level = 1.0 - st.edge_level * (1.0 - q_in)
-        below = q < level[:, None, None]
-        # outermost sample below the level, crossing to the next one outward
-        last = ns - 1 - np.argmax(below[:, :, ::-1], axis=2)
-        valid = below.any(axis=2) & (last < ns - 1) & (last > 0)
-        k = np.clip(last, 0, ns - 2)
-        q0 = np.take_along_axis(q, k[..., None], axis=2)[..., 0]
-        q1 = np.take_along_axis(q, (k + 1)[..., None], axis=2)[..., 0]
-        dq = q1 - q0
-        valid &= dq > 0
-        frac = np.where(valid, (level[:, None] - q0) / np.where(dq > 0, dq, 1.0), 0.0)
-        dr = (w_in + w_out) / (ns - 1)
-        r_edge = r_s[np.arange(nc)[:, None], k] + frac * dr[:, None]
-        ex = centre[:, 0, None] + cphi[None, :] * r_edge
-        ey = centre[:, 1, None] + sphi[None, :] * r_edge
-        if st.vertical_background and pas == int(st.n_passes) - 1:
-            # edge points where the background itself changes fast across columns (a tube-wall
-            # band edge): pixel averaging and blur mix shadow and band multiplicatively, which
-            # dividing by the background cannot undo, so those centres carry extra column variance
-            xi = np.clip(np.rint(ex).astype(np.intp), 2, cols - 3)
-            yi = np.clip(np.rint(ey).astype(np.intp), 0, rows - 1)
-            gb = np.abs(bg16[yi, xi + 2].astype(np.float32) - bg16[yi, xi - 2].astype(np.float32))
-            strong = valid & (gb > st.background_edge_gradient * np.maximum(bg16[yi, xi].astype(np.float32), 1.0))
-            edge_frac = np.count_nonzero(strong, axis=1) / np.maximum(np.count_nonzero(valid, axis=1), 1)
+            qmin = qm
+        if last_pass:
+            edge_frac = np.count_nonzero(on_edge, axis=1) / np.maximum(np.count_nonzero(valid, axis=1), 1)
         for c in range(nc):
             if not ok[c]:
                 continue
@@ -819,11 +1156,10 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
                 why[c] = f"only {np.count_nonzero(v)} of {nr} rays found an edge"
                 continue
             pts = np.stack([ex[c, v], ey[c, v]], axis=1)
-            last_pass = pas == int(st.n_passes) - 1
             try:
                 p = _fit_one(pts, st.ellipse_fitter)
                 n_fits += 1
-                if not last_pass:       # intermediate passes only re-centre the rays
+                if not last_pass:
                     if np.all(np.isfinite(p)) and p[3] > 0:
                         fits[c] = p
                     else:
@@ -831,7 +1167,6 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
                         why[c] = "ellipse fit returned a degenerate ellipse"
                     continue
                 d, nx, ny = _ellipse_residuals(pts, p)
-                # one round of outlier removal (5 x robust sigma, at least 0.1 px)
                 sig = 1.2533 * np.mean(np.abs(d))
                 good = np.abs(d) <= max(5.0 * sig, 0.1)
                 if not good.all() and np.count_nonzero(good) >= st.min_edge_fraction * nr:
@@ -849,108 +1184,99 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
                 continue
             fits[c] = p
             n_pts[c] = len(pts)
-            dof = max(1, len(pts) - 5)
-            s2 = float(np.dot(d, d)) / dof
+            s2[c] = float(np.dot(d, d)) / max(1, len(pts) - 5)
             rms[c] = np.sqrt(np.mean(d ** 2))
-            sxx, sxy, syy = np.dot(nx, nx), np.dot(nx, ny), np.dot(ny, ny)
-            det_ = sxx * syy - sxy * sxy
-            # neighbouring rays share pixels: about one independent edge sample
-            # per 2 px of perimeter (pi r), so inflate by n / (pi r) when larger
-            infl = max(1.0, len(pts) / (np.pi * np.sqrt(p[2] * p[3])))
-            cov[c] = (infl * s2 / det_) * np.array([[syy, -sxy], [-sxy, sxx]]) if det_ > 0 else np.nan
+            normals[c] = (nx, ny)
         centre = np.where(ok[:, None], fits[:, :2], centre)
         radius = np.where(ok, np.sqrt(np.abs(fits[:, 2] * fits[:, 3])), radius)
+    return _Measurement(ok=ok, why=why, fits=fits, n_pts=n_pts, rms=rms, s2=s2, normals=normals,
+                        qmin=qmin, edge_frac=edge_frac, n_fits=n_fits)
 
-    # --- post-fit screening
-    accepted = []
-    depth_all = -np.log(np.clip(qmin, 1e-6, None))
+
+# --------------------------------------------------------------------------- stage 8-9: rejection, uncertainty
+
+def _screen_fits(meas, cand, model, st, drange, rej):
+    """Post-fit screening; returns the indices (into the candidates) of accepted shadows."""
+    if drange is not None:
+        dmin = drange[0] * (1.0 - st.size_tolerance)
+        dmax = drange[1] * (1.0 + st.size_tolerance)
+    ok = meas.ok
+    depth_all = -np.log(np.clip(meas.qmin, 1e-6, None))
     depth_ref = float(np.median(depth_all[ok])) if np.any(ok) else np.nan
-    for c, i in enumerate(cand):
+    out = []
+    for c in range(len(cand.index)):
+        where, a = cand.centre[c], cand.area[c]
         if not ok[c]:
-            reject(i, "fit_failed", why[c])
+            rej.add(where, a, "fit_failed", meas.why[c])
             continue
-        p = fits[c]
+        p = meas.fits[c]
         ratio = p[2] / p[3]
-        contrast = 1.0 - qmin[c]
+        contrast = 1.0 - meas.qmin[c]
         if contrast < st.min_contrast:
-            reject(i, "not_a_sphere_contrast", f"shadow depth {contrast:.3f} < {st.min_contrast}")
+            rej.add(where, a, "not_a_sphere_contrast", f"shadow depth {contrast:.3f} < {st.min_contrast}")
             continue
         if ratio > st.max_axis_ratio:
-            reject(i, "overlap", f"axis ratio {ratio:.3f} > {st.max_axis_ratio}: elongated (merged) shadow")
+            rej.add(where, a, "overlap", f"axis ratio {ratio:.3f} > {st.max_axis_ratio}: elongated (merged) shadow")
             continue
-        if rms[c] > st.max_fit_rms_px:
-            reject(i, "not_a_sphere_shape", f"edge RMS {rms[c]:.3f} px > {st.max_fit_rms_px} px: not elliptical")
+        if meas.rms[c] > st.max_fit_rms_px:
+            rej.add(where, a, "not_a_sphere_shape", f"edge RMS {meas.rms[c]:.3f} px > {st.max_fit_rms_px} px: "
+                                                    "not elliptical")
             continue
         if drange is not None:
             dfit = 2.0 * np.sqrt(p[2] * p[3])
             if not (dmin <= dfit <= dmax):
-                reject(i, "not_a_sphere_size", f"fitted diameter {dfit:.1f} px outside [{dmin:.1f}, {dmax:.1f}]")
+                rej.add(where, a, "not_a_sphere_size", f"fitted diameter {dfit:.1f} px outside "
+                                                       f"[{dmin:.1f}, {dmax:.1f}]")
                 continue
         if (st.overlap_darkness is not None and np.isfinite(depth_ref) and np.count_nonzero(ok) >= 3
                 and depth_all[c] > st.overlap_darkness * depth_ref):
-            reject(i, "overlap", f"shadow optical depth {depth_all[c]:.2f} > {st.overlap_darkness} x median "
-                                 f"{depth_ref:.2f}: spheres in line")
+            rej.add(where, a, "overlap", f"shadow optical depth {depth_all[c]:.2f} > {st.overlap_darkness} x "
+                                         f"median {depth_ref:.2f}: spheres in line")
             continue
-        on_edge = bool(edge_frac[c] > st.background_edge_min_fraction)
-        cv = cov[c].copy()
+        if model.structure[c] > st.max_background_misfit:
+            rej.add(where, a, "background_structure",
+                    f"background round the shadow misfits a straight structure by {model.structure[c]:.1f} x the "
+                    f"noise (> {st.max_background_misfit}): corner or curved step, no background model holds")
+            continue
+        out.append(c)
+    return out
+
+
+def _centre_uncertainty(accepted, meas, model, st):
+    """Centre covariance ``f s^2 (sum n n^T)^-1`` per accepted shadow (s the edge RMS,
+    f = max(1, n / (pi r)) for neighbouring rays sharing pixels), plus
+    ``background_edge_sigma_px`` in quadrature across the structure for shadows whose edge
+    crosses a background edge. Returns a list of (c, cov, on_edge)."""
+    out = []
+    for c in accepted:
+        nx, ny = meas.normals[c]
+        p = meas.fits[c]
+        sxx, sxy, syy = np.dot(nx, nx), np.dot(nx, ny), np.dot(ny, ny)
+        det_ = sxx * syy - sxy * sxy
+        infl = max(1.0, meas.n_pts[c] / (np.pi * np.sqrt(p[2] * p[3])))
+        cov = (infl * meas.s2[c] / det_) * np.array([[syy, -sxy], [-sxy, sxx]]) if det_ > 0 \
+            else np.full((2, 2), np.nan)
+        on_edge = bool(meas.edge_frac[c] > st.background_edge_min_fraction)
         if on_edge:
-            cv[0, 0] += st.background_edge_sigma_px ** 2
-        accepted.append((c, fits[c], n_pts[c], rms[c], cv, qmin[c], on_edge))
-    return _assemble(accepted, rej_c, rej_a, rej_r, rej_d, bg, n_fits, sdd_px, principal_point_px,
-                     trans.shape, "")
+            cov = cov + st.background_edge_sigma_px ** 2 * np.outer(model.eu[c], model.eu[c])
+        out.append((c, cov, on_edge))
+    return out
 
 
-def _repair_horizontal_steps(trans, bg16, stats, cand, rows, cols, min_step=0.01):
-    """Repair the vertical-closing background under shadows that straddle a horizontal step.
-
-    The vertical closing fills each sphere shadow from above and below. When a roughly
-    horizontal background step (the tube's end rim, ~2-3 %) crosses the shadow, it cannot know
-    where inside the shadow the step lies and puts it at the shadow's border, so part of the
-    shadow is normalised by the wrong level: a row bias of 0.04-0.10 px. Where the closing's
-    background above and below a shadow differ by more than ``min_step`` (relative) AND by more
-    than its left and right sides do (a vertical tube-band edge is the closing's own case), the
-    background in the shadow's box is replaced by the row-by-row linear interpolation between
-    the closing's values in the columns just left and right of the box (exact there: those
-    columns do not cross the shadow) and that box of ``trans`` is renormalised, in place.
-    Returns the candidates where a horizontal step meets a stronger vertical one (a corner of
-    rim and band), for which no background model holds.
-    """
-    corners = []
-    for i in cand:
-        x0, y0, w, h = (int(v) for v in stats[i, :4])
-        m = max(3, int(0.3 * max(w, h)) + 1)
-        ya, yb = y0 - m, y0 + h + m
-        xl, xr = x0 - m, x0 + w + m - 1
-        if ya < 0 or xl < 0 or yb > rows or xr >= cols:
-            continue
-        above = float(np.mean(bg16[ya:y0, x0:x0 + w]))
-        below = float(np.mean(bg16[y0 + h:yb, x0:x0 + w]))
-        if abs(above - below) <= min_step * max(above, below, 1.0):
-            continue
-        old = bg16[ya:yb, xl:xr + 1].astype(np.float32)
-        left, right = old[:, :1], old[:, -1:]
-        if abs(float(left.mean()) - float(right.mean())) >= abs(above - below):
-            # a step above/below AND a stronger one left/right: the corner of the end rim and a
-            # wall band; neither the closing nor the interpolation holds (row errors ~0.1 px)
-            corners.append(i)
-            continue
-        f = np.linspace(0.0, 1.0, xr - xl + 1, dtype=np.float32)[None, :]
-        trans[ya:yb, xl:xr + 1] *= old / np.maximum(left + (right - left) * f, 1.0)
-    return corners
-
-
-def _assemble(accepted, rej_c, rej_a, rej_r, rej_d, bg, n_fits, sdd_px, pp, shape, message):
+def _assemble(accepted, rej, n_fits, sdd_px, pp, shape, hot, message, meas=None, cand=None, model=None):
     m = len(accepted)
+    on_edge = np.zeros(m, dtype=bool)
     if m:
-        fits = np.array([a[1] for a in accepted])
+        idx = np.array([a[0] for a in accepted])
+        fits = meas.fits[idx]
         centre = fits[:, :2].copy()
         axes = fits[:, 2:4].copy()
         ang = np.mod(fits[:, 4], np.pi)
-        npts = np.array([a[2] for a in accepted], dtype=int)
-        rms = np.array([a[3] for a in accepted])
-        cov = np.array([a[4] for a in accepted])
-        qmin = np.array([a[5] for a in accepted])
-        on_edge = np.array([a[6] for a in accepted], dtype=bool)
+        npts = meas.n_pts[idx].astype(int)
+        rms = meas.rms[idx]
+        cov = np.array([a[1] for a in accepted])
+        qmin = meas.qmin[idx]
+        on_edge = np.array([a[2] for a in accepted], dtype=bool) if len(accepted[0]) > 2 else on_edge
     else:
         centre = np.zeros((0, 2))
         axes = np.zeros((0, 2))
@@ -959,24 +1285,29 @@ def _assemble(accepted, rej_c, rej_a, rej_r, rej_d, bg, n_fits, sdd_px, pp, shap
         rms = np.zeros(0)
         cov = np.zeros((0, 2, 2))
         qmin = np.zeros(0)
-        on_edge = np.zeros(0, dtype=bool)
+    n_hot = np.zeros(m, dtype=int)
+    if m and len(hot):
+        d = np.linalg.norm(hot[None, :, :] - centre[:, None, :], axis=2)
+        n_hot = np.count_nonzero(d < 1.5 * axes[:, :1] + 4.0, axis=1)
     corrected = None
     if sdd_px is not None:
         if pp is None:
             pp = ((shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0)
         corrected = deng_correction(centre, axes, sdd_px, pp) if m else np.zeros((0, 2))
     rejected = RejectedCandidates(
-        centre_px=np.array(rej_c, dtype=np.float64).reshape(-1, 2),
-        area_px=np.array(rej_a, dtype=np.float64),
-        reason=tuple(rej_r), detail=tuple(rej_d))
+        centre_px=np.array(rej.centre, dtype=np.float64).reshape(-1, 2),
+        area_px=np.array(rej.area, dtype=np.float64),
+        reason=tuple(rej.reason), detail=tuple(rej.detail))
     if not message:
         counts = {r: rejected.count(r) for r in REJECT_REASONS if rejected.count(r)}
         message = f"{m} spheres accepted, {len(rejected)} rejected" + (f" {counts}" if counts else "")
+        if len(hot):
+            message += f"; {len(hot)} hot/dead pixels repaired"
     return FrameDetections(
         centre_px=centre, centre_corrected_px=corrected, centre_cov_px2=cov, semi_axes_px=axes,
         angle_rad=ang, n_edge_points=npts, fit_rms_px=rms, min_transmission=qmin, on_background_edge=on_edge,
-        rejected=rejected,
-        background=float(bg), success=m > 0, message=message, nfev=int(n_fits))
+        rejected=rejected, background=1.0, success=m > 0, message=message, nfev=int(n_fits),
+        n_hot_pixels=n_hot, hot_pixels_px=hot)
 
 
 # --------------------------------------------------------------------------- baselines
