@@ -97,7 +97,7 @@ def test_small_dark_blobs_are_rejected_by_size():
     (lambda g: g[:, :1000], "mono16", "wrong_size"),
     (lambda g: g.astype(np.float32), "mono16", "wrong_dtype"),
     (lambda g: np.where(np.arange(g.shape[1]) == 7, np.nan, g / I0).astype(np.float32), "32FC1", "non_finite"),
-    (lambda g: g, "mono8", "wrong_encoding"),
+    (lambda g: g, "bgr8", "wrong_encoding"),
 ])
 def test_bad_frames_raise_frame_error_and_the_run_continues(make, encoding, reason):
     w = default_static_truth(0.364)

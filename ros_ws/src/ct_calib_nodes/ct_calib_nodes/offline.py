@@ -72,7 +72,7 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
     say = progress or (lambda _m: None)
     out = OfflineResult(read_report=ReadReport(), acc=CampaignAccumulator())
     counts = {"images": 0, "stage_readings": 0, "frames": 0, "bad_frames": 0, "bad_stage": 0, "unpaired": 0}
-    proc = FrameProcessor(ref, instrument.detector, instrument.sdd_reported_m, instrument.flat_field_counts,
+    proc = FrameProcessor(ref, instrument.detector, instrument.sdd_reported_m, instrument.flat_field(),
                           init_frames=init_frames)
     images, stages = {}, {}
     t0 = time.monotonic()

@@ -40,7 +40,8 @@ class CtSphereDetector(Node):
         self.p = p = declare_parameters(self, PARAMS)
         self.instrument, self.ref = load_ct_files(p, self.get_logger())
         self.proc = FrameProcessor(self.ref, self.instrument.detector, self.instrument.sdd_reported_m,
-                                   self.instrument.flat_field_counts, init_frames=int(p["init_frames"]))
+                                   self.instrument.flat_field(), init_frames=int(p["init_frames"]),
+                                   dark=self.instrument.dark)
         self.images, self.stages = {}, {}     # stamp_ns -> (msg, arrival time)
         self.counts = {"frames": 0, "bad_frames": 0, "bad_stage": 0, "unpaired": 0, "published": 0}
         qos = QOS_RELIABLE_STREAM if p["reliable"] else qos_profile_sensor_data
