@@ -214,6 +214,7 @@ class DetectionSettings:
     exclusion_px: float = 3.0
     background_span_px: float = 6.0
     max_background_misfit: float = 3.0
+    max_cross_structure: float = 2.0
     hot_pixel_sigma: float = 6.0
     orientation_from_frame: bool = True
     fixed_orientation_deg: float | None = None
@@ -638,17 +639,18 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
     drange = _check_range(diameter_px_range)
     trans = to_transmission(image, encoding, flat_field_counts, expected_shape, dark)     # 1 flat field
     noise = _noise_level(trans)
-    hot = _repair_hot_pixels(trans, noise, st)                                            # 2 hot pixels
-    bg = _segmentation_background(trans, st, drange)                                      # 3 background
+    bg = _segmentation_background(trans, st, drange)                                      # 2 background
     rej = _Rejections()
-    cand = _candidates(trans, bg, st, drange, rej)                                        # 4 candidates
+    cand = _candidates(trans, bg, st, drange, rej)                                        # 3 candidates
     cand.noise = noise
     if len(cand.index) == 0:
-        return _assemble([], rej, 0, sdd_px, principal_point_px, trans.shape, hot, "no sphere shadow accepted")
-    model = _local_backgrounds(trans, bg, cand, st)                                       # 5 local background
-    meas = _measure_edges_and_fit(trans, model, cand, st)                                 # 6 edges + 7 fit
-    accepted = _screen_fits(meas, cand, model, st, drange, rej)                           # 8 rejection
-    accepted = _centre_uncertainty(accepted, meas, model, st)                             # 9 uncertainty
+        return _assemble([], rej, 0, sdd_px, principal_point_px, trans.shape, np.zeros((0, 2)),
+                         "no sphere shadow accepted")
+    model, hot = _local_backgrounds(trans, bg, cand, st)                                  # 4 local background,
+    #                                                                                       hot pixels
+    meas = _measure_edges_and_fit(trans, model, cand, st)                                 # 5 edges, 6 fit
+    accepted = _screen_fits(meas, cand, model, st, drange, rej)                           # 7 rejection
+    accepted = _centre_uncertainty(accepted, meas, model, st)                             # 8 uncertainty
     return _assemble(accepted, rej, meas.n_fits, sdd_px, principal_point_px, trans.shape, hot, "",
                      meas=meas, cand=cand)
 
@@ -682,7 +684,7 @@ def shadow_diameter_range_px(diameters_m, centres_of_m, sdd_m: float, srd_m: flo
     return 0.6 * float(d.min()) * m_lo / pixel_pitch_m, 1.5 * float(d.max()) * m_hi / pixel_pitch_m
 
 
-# --------------------------------------------------------------------------- stage 1-2: noise, hot pixels
+# --------------------------------------------------------------------------- noise, hot pixels
 
 def _noise_level(trans) -> float:
     """Robust sd of the pixel noise at the open-beam level, from neighbouring-pixel differences."""
@@ -694,32 +696,39 @@ def _noise_level(trans) -> float:
 _RING3 = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], np.uint8)
 
 
-def _repair_hot_pixels(trans, noise, st):
-    """Single pixels brighter (darker) than all 8 neighbours by more than ``hot_pixel_sigma``
-    noise sd (a detector blurred over ~1 px cannot make one): replaced in place by the mean of
-    their neighbours. Returns their (col, row) positions (K, 2)."""
+def _repair_hot_pixels(trans, win, yy, xx, noise, st):
+    """Hot (dead) pixels in the windows round the shadows: single pixels brighter (darker) than
+    all 8 neighbours by more than ``hot_pixel_sigma`` noise sd, which a detector blurred over
+    ~1 px cannot make. Replaced by the mean of their neighbours, in ``trans`` and ``win``
+    (in place). Returns their (col, row) positions (K, 2)."""
     if not st.hot_pixel_sigma:
         return np.zeros((0, 2))
     k = np.float32(st.hot_pixel_sigma * noise)
-    rows, cols = trans.shape
-    # pre-selection: a pixel beyond all 8 neighbours by k is beyond their mean by k too
-    mean8 = (cv2.boxFilter(trans, -1, (3, 3), normalize=False, borderType=cv2.BORDER_REPLICATE) - trans) * np.float32(1 / 8)
-    r, c = np.nonzero(np.abs(trans - mean8) > k)
-    if r.size > 0.01 * trans.size:       # not isolated defects: leave the frame alone
+    cen = win[:, 1:-1, 1:-1]
+    nb = [win[:, 1 + dr:win.shape[1] - 1 + dr, 1 + dc:win.shape[2] - 1 + dc]
+          for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc]
+    mx = nb[0].copy()
+    mn = nb[0].copy()
+    for a in nb[1:]:
+        np.maximum(mx, a, out=mx)
+        np.minimum(mn, a, out=mn)
+    ci, ri, cj = np.nonzero((cen > mx + k) | (cen < mn - k))
+    if ci.size == 0:
         return np.zeros((0, 2))
-    if r.size:
-        nb = np.stack([trans[np.clip(r + dr, 0, rows - 1), np.clip(c + dc, 0, cols - 1)]
-                       for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc])
-        v = trans[r, c]
-        bad = (v > nb.max(axis=0) + k) | (v < nb.min(axis=0) - k)
-        r, c = r[bad], c[bad]
-    if r.size:
-        acc = np.zeros(r.size, np.float64)
-        for dr in (-1, 0, 1):
-            for dc in (-1, 0, 1):
-                if dr or dc:
-                    acc += trans[np.clip(r + dr, 0, rows - 1), np.clip(c + dc, 0, cols - 1)]
-        trans[r, c] = acc / 8.0
+    r = yy[ci, ri + 1, 0]
+    c = xx[ci, 0, cj + 1]
+    rc = np.unique(np.column_stack([r, c]), axis=0)
+    if rc.shape[0] > 0.01 * win.size:          # not isolated defects: leave the frame alone
+        return np.zeros((0, 2))
+    rows, cols = trans.shape
+    r, c = rc[:, 0], rc[:, 1]
+    acc = np.zeros(r.size, np.float64)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if dr or dc:
+                acc += trans[np.clip(r + dr, 0, rows - 1), np.clip(c + dc, 0, cols - 1)]
+    trans[r, c] = acc / 8.0
+    win[...] = trans[yy, xx]
     return np.column_stack([c, r]).astype(np.float64)
 
 
@@ -938,78 +947,100 @@ class _LocalBackground:
     edge_gradient: np.ndarray  # (C, U) relative change of a over +-2 px of u
     structure: np.ndarray   # (C,) rms misfit of the model on the background samples / noise
     coherence: np.ndarray   # (C,)
+    minor: np.ndarray       # (C,) gradient energy along the structure / the noise's
 
 
 def _local_backgrounds(trans, bg, cand, st):
     """Background of each shadow from its surroundings, with no assumption about the holder.
 
-    The direction of the strongest background structure around the shadow comes from the
-    structure tensor of the (shadow-free) segmentation background; orientations within
-    ``snap_deg`` of the pixel axes are snapped to them (exact pixel sampling). On a grid
-    turned to that direction (u across, v along the structure) each line of constant u is fitted
-    by a straight line in v through the samples outside the shadow (radius + ``exclusion_px``,
-    darker samples of neighbours dropped in a second round), so a step or band of any
-    orientation through the shadow, and any smooth gradient, are interpolated across it."""
+    The direction of the strongest structure around the shadow comes from the structure
+    tensor of the frame's gradients outside every shadow; orientations within ``snap_deg`` of
+    the pixel axes are snapped to them (exact pixel sampling). On a grid turned to that
+    direction (u across, v along the structure) each line of constant u is fitted by a
+    straight line in v through the samples outside the shadow (radius + ``exclusion_px``,
+    other shadows masked, samples 4 noise sd below the first fit dropped in a second round),
+    so a step or band of any orientation through the shadow, and any smooth gradient, are
+    interpolated across it. Also repairs hot pixels in the windows (see
+    :func:`_repair_hot_pixels`), in place."""
     c = cand.centre
     nc = c.shape[0]
     r = cand.radius
     rows, cols = trans.shape
-    # orientation from the structure tensor of bg in a box round each candidate
-    hw = int(np.ceil(r.max() * 1.6 + 6))
-    gy, gx = np.mgrid[-hw:hw + 1, -hw:hw + 1]
-    ci = np.rint(c).astype(np.intp)
-    yy = np.clip(ci[:, 1, None, None] + gy[None], 1, rows - 2)
-    xx = np.clip(ci[:, 0, None, None] + gx[None], 1, cols - 2)
-    sm = trans if st.orientation_from_frame else bg
-    keep = (cand.shadows[yy, xx] == 0) if st.orientation_from_frame else 1.0
-    bx = (sm[yy, xx + 1] - sm[yy, xx - 1]) * keep
-    by = (sm[yy + 1, xx] - sm[yy - 1, xx]) * keep
-    jxx = np.sum(bx * bx, axis=(1, 2), dtype=np.float64)
-    jyy = np.sum(by * by, axis=(1, 2), dtype=np.float64)
-    jxy = np.sum(bx * by, axis=(1, 2), dtype=np.float64)
-    theta = 0.5 * np.arctan2(2 * jxy, jxx - jyy)            # direction of the strongest gradient
-    coh = np.sqrt((jxx - jyy) ** 2 + 4 * jxy ** 2) / np.maximum(jxx + jyy, 1e-30)
-    snap = np.deg2rad(st.snap_deg)
-    q = np.round(theta / (0.5 * np.pi)) * (0.5 * np.pi)
-    theta = np.where(np.abs(theta - q) < snap, q, theta)
-    if st.fixed_orientation_deg is not None:       # for comparisons only: one direction everywhere
-        theta = np.full(nc, np.deg2rad(st.fixed_orientation_deg))
-    eu = np.stack([np.cos(theta), np.sin(theta)], axis=1)
-    eu = np.where(np.abs(eu) < 1e-12, 0.0, eu)
-    ev = np.stack([-eu[:, 1], eu[:, 0]], axis=1)
-    # grid
     w_out = np.maximum(0.5 * r, 4.0)
     rex = r + st.exclusion_px
     U = int(np.ceil(np.max(r + w_out))) + 3
     V = int(np.ceil(np.max(rex + np.maximum(0.5 * r, st.background_span_px))))
-    us = np.arange(-U, U + 1, dtype=np.float64)
-    vs = np.arange(-V, V + 1, dtype=np.float64)
+    R = max(U, V) + 1
     origin = np.rint(c)
-    px = origin[:, 0, None, None] + eu[:, 0, None, None] * us[None, :, None] + ev[:, 0, None, None] * vs[None, None, :]
-    py = origin[:, 1, None, None] + eu[:, 1, None, None] * us[None, :, None] + ev[:, 1, None, None] * vs[None, None, :]
+    oi = origin.astype(np.intp)
+    off = np.arange(-R, R + 1)
+    yy = np.clip(oi[:, 1, None, None] + off[None, :, None], 0, rows - 1)
+    xx = np.clip(oi[:, 0, None, None] + off[None, None, :], 0, cols - 1)
+    win = trans[yy, xx]                                            # (C, 2R+1, 2R+1) float32
+    hot = _repair_hot_pixels(trans, win, yy, xx, cand.noise, st)
+    shadow = cand.shadows[yy, xx]
+    # orientation: structure tensor of the window's gradients off the shadows
+    keep = (shadow[:, 1:-1, 1:-1] == 0)
+    gx_ = (win[:, 1:-1, 2:] - win[:, 1:-1, :-2]) * keep
+    gy_ = (win[:, 2:, 1:-1] - win[:, :-2, 1:-1]) * keep
+    jxx = np.sum(gx_ * gx_, axis=(1, 2), dtype=np.float64)
+    jyy = np.sum(gy_ * gy_, axis=(1, 2), dtype=np.float64)
+    jxy = np.sum(gx_ * gy_, axis=(1, 2), dtype=np.float64)
+    theta = 0.5 * np.arctan2(2 * jxy, jxx - jyy)            # direction of the strongest gradient
+    root = np.sqrt((jxx - jyy) ** 2 + 4 * jxy ** 2)
+    coh = root / np.maximum(jxx + jyy, 1e-30)
+    # gradient energy along the structure (minor eigenvalue) over what the noise gives
+    # (a central difference has variance 2 sigma^2 at the open-beam level)
+    n_keep = np.maximum(np.count_nonzero(keep, axis=(1, 2)), 1)
+    minor = 0.5 * (jxx + jyy - root) / (2.0 * cand.noise ** 2 * n_keep)
+    snap = np.deg2rad(st.snap_deg)
+    q = np.round(theta / (0.5 * np.pi)) * (0.5 * np.pi)
+    snapped = np.abs(theta - q) < snap
+    theta = np.where(snapped, q, theta)
+    if st.fixed_orientation_deg is not None:       # for comparisons only: one direction everywhere
+        theta = np.full(nc, np.deg2rad(st.fixed_orientation_deg))
+        snapped = np.abs(np.sin(2 * theta)) < 1e-9
+    eu = np.stack([np.cos(theta), np.sin(theta)], axis=1)
+    eu = np.where(np.abs(eu) < 1e-9, 0.0, np.where(snapped[:, None], np.rint(eu), eu))
+    ev = np.stack([-eu[:, 1], eu[:, 0]], axis=1)
+    us = np.arange(-U, U + 1, dtype=np.float32)
+    vs = np.arange(-V, V + 1, dtype=np.float32)
+    dxg = eu[:, 0, None, None] * us[None, :, None] + ev[:, 0, None, None] * vs[None, None, :]
+    dyg = eu[:, 1, None, None] * us[None, :, None] + ev[:, 1, None, None] * vs[None, None, :]
+    px = origin[:, 0, None, None] + dxg
+    py = origin[:, 1, None, None] + dyg
     inside = (px >= 0) & (px <= cols - 1) & (py >= 0) & (py <= rows - 1)
-    s = _bilinear(trans, np.clip(px, 0, cols - 1), np.clip(py, 0, rows - 1))
+    s = np.empty(px.shape, np.float32)
+    sh = np.empty(px.shape, np.uint8)
+    if np.any(snapped):               # exact pixels, gathered from the windows
+        k = np.nonzero(snapped)[0]
+        ix = (R + np.rint(dxg[k])).astype(np.intp)
+        iy = (R + np.rint(dyg[k])).astype(np.intp)
+        kk = np.arange(k.size)[:, None, None]
+        s[k] = win[k[kk], iy, ix]
+        sh[k] = shadow[k[kk], iy, ix]
+    if not np.all(snapped):
+        k = np.nonzero(~snapped)[0]
+        s[k] = _bilinear(trans, np.clip(px[k], 0, cols - 1), np.clip(py[k], 0, rows - 1))
+        sh[k] = cand.shadows[np.clip(np.rint(py[k]).astype(np.intp), 0, rows - 1),
+                             np.clip(np.rint(px[k]).astype(np.intp), 0, cols - 1)]
     dx = px - c[:, 0, None, None]
     dy = py - c[:, 1, None, None]
     noise = cand.noise
-    dark = cand.shadows
-    ix = np.clip(np.rint(px).astype(np.intp), 0, cols - 1)
-    iy = np.clip(np.rint(py).astype(np.intp), 0, rows - 1)
-    wgt = (inside & (dx * dx + dy * dy > (rex * rex)[:, None, None]) & (dark[iy, ix] == 0)).astype(np.float64)
+    wgt = (inside & (dx * dx + dy * dy > (rex * rex)[:, None, None]) & (sh == 0)).astype(np.float32)
     vv = vs[None, None, :]
     a, b = _line_fit(s, wgt, vv)
-    # second round: drop samples more than 4 noise sd below the first fit
     fit = a[:, :, None] + b[:, :, None] * vv
-    wgt2 = wgt * (s > fit - 4.0 * noise * fit)
-    a, b = _line_fit(s, wgt2, vv)
-    fit = a[:, :, None] + b[:, :, None] * vv
-    res = (s - fit) * wgt2
-    n_used = np.maximum(np.sum(wgt2, axis=(1, 2)), 1.0)
-    structure = np.sqrt(np.sum(res * res, axis=(1, 2)) / n_used) / (noise * np.maximum(np.median(a, axis=1), 1e-6))
+    wgt *= s > fit * np.float32(1.0 - 4.0 * noise)
+    a, b = _line_fit(s, wgt, vv)
+    res = (s - (a[:, :, None] + b[:, :, None] * vv)) * wgt
+    n_used = np.maximum(np.sum(wgt, axis=(1, 2)), 1.0)
+    structure = (np.sqrt(np.sum(res * res, axis=(1, 2), dtype=np.float64) / n_used)
+                 / (noise * np.maximum(np.median(a, axis=1), 1e-6)))
     ap = np.pad(a, ((0, 0), (2, 2)), mode="edge")
     grad = np.abs(ap[:, 4:] - ap[:, :-4]) / np.maximum(a, 1e-6)
-    return _LocalBackground(origin=origin, eu=eu, ev=ev, umin=-U, a=a, b=b, edge_gradient=grad,
-                            structure=structure, coherence=coh)
+    return _LocalBackground(origin=origin, eu=eu, ev=ev, umin=-U, a=a.astype(np.float64), b=b.astype(np.float64),
+                            edge_gradient=grad, structure=structure, coherence=coh, minor=minor), hot
 
 
 def _line_fit(s, w, v):
@@ -1212,6 +1243,7 @@ def _screen_fits(meas, cand, model, st, drange, rej):
     ok = meas.ok
     # misfit of the background model relative to the frame's typical one (noise, compression)
     misfit = model.structure / max(float(np.median(model.structure)), 1e-9)
+    cross = model.minor / max(float(np.median(model.minor)), 1e-9)
     depth_all = -np.log(np.clip(meas.qmin, 1e-6, None))
     depth_ref = float(np.median(depth_all[ok])) if np.any(ok) else np.nan
     out = []
@@ -1243,6 +1275,11 @@ def _screen_fits(meas, cand, model, st, drange, rej):
                 and depth_all[c] > st.overlap_darkness * depth_ref):
             rej.add(where, a, "overlap", f"shadow optical depth {depth_all[c]:.2f} > {st.overlap_darkness} x "
                                          f"median {depth_ref:.2f}: spheres in line")
+            continue
+        if cross[c] > st.max_cross_structure:
+            rej.add(where, a, "background_structure",
+                    f"background changes along its main structure too ({cross[c]:.1f} x the frame's median "
+                    f"> {st.max_cross_structure}): a corner of two steps or bands, no background model holds")
             continue
         if misfit[c] > st.max_background_misfit:
             rej.add(where, a, "background_structure",
