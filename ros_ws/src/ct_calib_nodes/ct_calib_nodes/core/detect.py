@@ -220,7 +220,9 @@ class DetectionSettings:
     fixed_orientation_deg: float | None = None
     background_edge_gradient: float = 0.04
     background_edge_min_fraction: float = 0.05
-    background_edge_sigma_px: float = 0.012
+    background_edge_sigma_px: float = 0.0
+    background_edge_clusters: float = 1.0
+    background_edge_refit: bool = True
 
     def __post_init__(self):
         if self.ellipse_fitter not in ("fitEllipse", "fitEllipseAMS", "fitEllipseDirect", "geometric"):
@@ -1106,6 +1108,7 @@ class _Measurement:
     qmin: np.ndarray
     edge_frac: np.ndarray   # fraction of edge points on a strong background edge
     n_fits: int
+    edge_shift: np.ndarray  # (C, 2) centre minus the centre fitted without background-edge points
 
 
 def _edge_points(trans, model, centre, radius, st, first, level):
@@ -1176,6 +1179,7 @@ def _measure_edges_and_fit(trans, model, cand, st):
     rms = np.full(nc, np.nan)
     s2 = np.full(nc, np.nan)
     normals = [None] * nc
+    shift = np.zeros((nc, 2))
     edge_frac = np.zeros(nc)
     level = qmin = None
     n_fits = 0
@@ -1196,6 +1200,7 @@ def _measure_edges_and_fit(trans, model, cand, st):
                 why[c] = f"only {np.count_nonzero(v)} of {nr} rays found an edge"
                 continue
             pts = np.stack([ex[c, v], ey[c, v]], axis=1)
+            oe = on_edge[c, v]
             try:
                 p = _fit_one(pts, st.ellipse_fitter)
                 n_fits += 1
@@ -1211,6 +1216,7 @@ def _measure_edges_and_fit(trans, model, cand, st):
                 good = np.abs(d) <= max(5.0 * sig, 0.1)
                 if not good.all() and np.count_nonzero(good) >= st.min_edge_fraction * nr:
                     pts = pts[good]
+                    oe = oe[good]
                     p = _fit_one(pts, st.ellipse_fitter)
                     n_fits += 1
                     d, nx, ny = _ellipse_residuals(pts, p)
@@ -1226,11 +1232,22 @@ def _measure_edges_and_fit(trans, model, cand, st):
             n_pts[c] = len(pts)
             s2[c] = float(np.dot(d, d)) / max(1, len(pts) - 5)
             rms[c] = np.sqrt(np.mean(d ** 2))
-            normals[c] = (nx, ny)
+            normals[c] = (nx, ny, d, oe)
+            oe_w = oe
+            if st.background_edge_refit and np.any(oe) and np.count_nonzero(~oe_w) >= max(8, 0.5 * len(oe)):
+                # the same fit without the points on a background edge: the difference is the
+                # data's own estimate of what the band or step does to this centre
+                try:
+                    p2 = _fit_one(pts[~oe_w], st.ellipse_fitter)
+                    n_fits += 1
+                    if np.all(np.isfinite(p2)):
+                        shift[c] = p[:2] - p2[:2]
+                except cv2.error:
+                    pass
         centre = np.where(ok[:, None], fits[:, :2], centre)
         radius = np.where(ok, np.sqrt(np.abs(fits[:, 2] * fits[:, 3])), radius)
     return _Measurement(ok=ok, why=why, fits=fits, n_pts=n_pts, rms=rms, s2=s2, normals=normals,
-                        qmin=qmin, edge_frac=edge_frac, n_fits=n_fits)
+                        qmin=qmin, edge_frac=edge_frac, n_fits=n_fits, edge_shift=shift)
 
 
 # --------------------------------------------------------------------------- stage 8-9: rejection, uncertainty
@@ -1297,17 +1314,54 @@ def _centre_uncertainty(accepted, meas, model, st):
     crosses a background edge. Returns a list of (c, cov, on_edge)."""
     out = []
     for c in accepted:
-        nx, ny = meas.normals[c]
+        nx, ny, d, oe = meas.normals[c]
         p = meas.fits[c]
         sxx, sxy, syy = np.dot(nx, nx), np.dot(nx, ny), np.dot(ny, ny)
         det_ = sxx * syy - sxy * sxy
         infl = max(1.0, meas.n_pts[c] / (np.pi * np.sqrt(p[2] * p[3])))
-        cov = (infl * meas.s2[c] / det_) * np.array([[syy, -sxy], [-sxy, sxx]]) if det_ > 0 \
-            else np.full((2, 2), np.nan)
+        if det_ <= 0:
+            out.append((c, np.full((2, 2), np.nan), False))
+            continue
+        ainv = np.array([[syy, -sxy], [-sxy, sxx]]) / det_
+        cov = infl * meas.s2[c] * ainv
         on_edge = bool(meas.edge_frac[c] > st.background_edge_min_fraction)
-        if on_edge:
+        if on_edge and st.background_edge_clusters:
+            # edge points on a background edge (band or step) err together: each run of them is
+            # one cluster of a cluster-robust (sandwich) covariance, from their own residuals
+            runs = _runs(oe)
+            m = np.zeros((2, 2))
+            for g in runs:
+                sg = np.array([np.dot(nx[g], d[g]), np.dot(ny[g], d[g])])
+                m += np.outer(sg, sg)
+            cov = cov + st.background_edge_clusters * (ainv @ m @ ainv)
+        if on_edge and st.background_edge_refit:
+            cov = cov + np.outer(meas.edge_shift[c], meas.edge_shift[c])
+        if on_edge and st.background_edge_sigma_px:
             cov = cov + st.background_edge_sigma_px ** 2 * np.outer(model.eu[c], model.eu[c])
         out.append((c, cov, on_edge))
+    return out
+
+
+def _runs(flags):
+    """Index arrays of the runs of True in a cyclic boolean sequence (points in ray order)."""
+    f = np.asarray(flags, bool)
+    n = f.size
+    if n == 0 or not f.any():
+        return []
+    if f.all():
+        return [np.arange(n)]
+    start = int(np.argmin(f))                 # rotate so the sequence starts on a False
+    idx = np.roll(np.arange(n), -start)
+    ff = f[idx]
+    out, cur = [], []
+    for i, v in zip(idx, ff):
+        if v:
+            cur.append(i)
+        elif cur:
+            out.append(np.array(cur))
+            cur = []
+    if cur:
+        out.append(np.array(cur))
     return out
 
 
