@@ -58,7 +58,7 @@ def frames(n, seed):
             hold = (plate,)
         else:
             ref, hold = helix49(), ()
-        rs = RenderSettings(poisson=False, ellipse_centre_bias=False, blur_sigma_px=blur)
+        rs = RenderSettings(poisson=False, ellipse_centre_bias=False, blur_sigma_px=blur, touch_gap_px=4.0)
         fr = render_projection(w, np.zeros(6), np.deg2rad(alpha), ref, DET, rs, output="transmission", holders=hold)
         flat = H.FlatField(heel=rng.uniform(0.1, 0.3), heel_angle_rad=rng.uniform(0, 2 * np.pi),
                            vignetting=rng.uniform(0.1, 0.4), field_stop_radius_px=STOP_R)

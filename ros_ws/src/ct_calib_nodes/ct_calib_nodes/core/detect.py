@@ -801,8 +801,10 @@ class _Candidates:
 
 def _candidates(trans, bg, st, drange, rej):
     """Threshold frame / background, label components, screen them (size, border, shape,
-    proximity); merged blobs (a sphere on a dark band that is not removed) are split by a
-    binary opening with a disk smaller than a shadow and the pieces screened again."""
+    proximity). A blob refused as merged (too large, elongated, not elliptical: a sphere on a
+    dark band the closings did not keep, or two shadows joined by their blurred rims) is first
+    split by a binary opening with a disk of 0.8 x the smallest shadow; its pieces are screened
+    like blobs (and refused if still merged)."""
     rows, cols = trans.shape
     ratio = cv2.divide(trans, bg)
     thr = np.float32(1.0 - st.segment_depth)
@@ -818,123 +820,112 @@ def _candidates(trans, bg, st, drange, rej):
     single_area_max = np.pi * dmax ** 2 / 4.0
     area = stats[:, cv2.CC_STAT_AREA].astype(np.float64)
     d_eq = 2.0 * np.sqrt(area / np.pi)
-    extra_stats, extra_cents, extra_lab = [], [], []
-    # split merged blobs: opening with a disk of ~0.6 dmin keeps shadow cores, drops thin bands
-    if np.isfinite(dmax):
-        big = np.nonzero((d_eq > dmax) | (np.maximum(stats[:, 2], stats[:, 3])
-                                           > 1.6 * st.max_axis_ratio * np.maximum(1, np.minimum(stats[:, 2], stats[:, 3]))))[0]
-        if big.size:
-            kd = max(3, int(0.6 * dmin)) | 1
-            disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (kd, kd))
-            for i in big:
-                x0, y0, w, h = (int(v) for v in stats[i, :4])
-                roi = (labels[y0:y0 + h, x0:x0 + w] == i + 1).view(np.uint8)
-                op = cv2.morphologyEx(roi, cv2.MORPH_OPEN, disk)
-                n2, lab2, st2, ce2 = cv2.connectedComponentsWithStats(op, connectivity=8)
-                for j in range(1, n2):
-                    a2 = st2[j, cv2.CC_STAT_AREA]
-                    if a2 < 0.5 * np.pi * dmin ** 2 / 4.0 or a2 > single_area_max:
-                        continue
-                    x2, y2, w2, h2 = st2[j, :4]
-                    if max(w2, h2) > 1.3 * st.max_axis_ratio * max(1, min(w2, h2)):
-                        continue
-                    sub = (lab2[y2:y2 + h2, x2:x2 + w2] == j)
-                    extra_stats.append([x0 + x2, y0 + y2, w2, h2, a2])
-                    extra_cents.append([ce2[j, 0] + x0, ce2[j, 1] + y0])
-                    extra_lab.append(sub)
-    cand, c_cent, c_rad, c_area = [], [], [], []
-    all_stats = [stats[i] for i in range(stats.shape[0])] + [np.asarray(s) for s in extra_stats]
-    all_cents = list(cents) + [np.asarray(c, float) for c in extra_cents]
-    n_main = stats.shape[0]
+    kd = max(3, int(0.8 * dmin)) | 1
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (kd, kd))
+
+    # work list of blobs: (stats [x, y, w, h, area], centroid, binary blob in its box or None, piece?)
+    # blobs where the beam hardly reaches (outside a field stop, < 25 % of the typical open-beam
+    # level) are noise, not shadows: left out without a record
+    exposed = bg[np.clip(np.rint(cents[:, 1]).astype(np.intp), 0, rows - 1),
+                 np.clip(np.rint(cents[:, 0]).astype(np.intp), 0, cols - 1)] > 0.25 * float(np.median(bg[::16, ::16]))
+    work = [(stats[i], cents[i], None, False, i) for i in range(stats.shape[0]) if exposed[i]]
+    pieces = []                  # (stats, centroid, blob) of every piece made
     split_parent = set()
-    if extra_stats:
-        for i in big:
-            split_parent.add(int(i))
-    for i in range(len(all_stats)):
-        s_ = all_stats[i]
+    cand = []                    # (work index, centre, radius, area)
+    k = 0
+    while k < len(work):
+        s_, (cx, cy), blob, piece, lab = work[k]
+        k += 1
         x0, y0, w, h = (int(v) for v in s_[:4])
         a = float(s_[4])
         de = 2.0 * np.sqrt(a / np.pi)
-        cx, cy = all_cents[i]
-        piece = i >= n_main
-        if not piece and i in split_parent:
-            # its pieces are screened on their own; the remainder is a band or a merged pair
-            if de > dmax and a > 3.5 * single_area_max:
-                continue
+        if blob is None:
+            blob = labels[y0:y0 + h, x0:x0 + w] == lab + 1
         if de < dmin:
             if not piece:
                 rej.add((cx, cy), a, "not_a_sphere_size", f"diameter {de:.1f} px < {dmin:.1f} px")
             continue
+        why = None
         if de > dmax:
-            if a <= 3.5 * single_area_max:
-                rej.add((cx, cy), a, "overlap", f"blob area {a:.0f} px^2 exceeds one sphere "
-                                                f"({single_area_max:.0f} px^2): merged shadows")
+            why = ("overlap", f"blob area {a:.0f} px^2 exceeds one sphere ({single_area_max:.0f} px^2): "
+                              "merged shadows") if a <= 3.5 * single_area_max else \
+                ("not_a_sphere_size", f"blob area {a:.0f} px^2 is larger than three spheres")
+        else:
+            r0 = 0.5 * de
+            reach = r0 + max(0.5 * r0, 4.0) + st.border_margin_px + 1.0
+            touches = x0 <= 0 or y0 <= 0 or x0 + w >= cols or y0 + h >= rows
+            if touches or cx - reach < 0 or cy - reach < 0 or cx + reach > cols - 1 or cy + reach > rows - 1:
+                rej.add((cx, cy), a, "edge_cut", "shadow touches the image border" if touches
+                        else "measuring annulus leaves the image")
+                continue
+            aspect = max(w, h) / max(1, min(w, h))
+            if aspect > 1.6 * st.max_axis_ratio:
+                why = ("overlap", f"blob bounding box aspect {aspect:.2f}: merged shadows")
             else:
-                rej.add((cx, cy), a, "not_a_sphere_size", f"blob area {a:.0f} px^2 is larger than three spheres")
+                mom = cv2.moments(blob.view(np.uint8), binaryImage=True)
+                mu20, mu02, mu11 = mom["mu20"] / mom["m00"], mom["mu02"] / mom["m00"], mom["mu11"] / mom["m00"]
+                tr_, dd_ = mu20 + mu02, np.sqrt(max((mu20 - mu02) ** 2 + 4 * mu11 ** 2, 0.0))
+                l1, l2 = 0.5 * (tr_ + dd_), 0.5 * (tr_ - dd_)
+                m_ratio = np.sqrt(l1 / l2) if l2 > 0 else np.inf
+                if m_ratio > st.max_axis_ratio:
+                    why = ("overlap", f"blob moment axis ratio {m_ratio:.2f} > {st.max_axis_ratio}: merged shadows")
+        if why is None:
+            cand.append((k - 1, (cx, cy), 0.5 * de, a))
             continue
-        r0 = 0.5 * de
-        reach = r0 + max(0.5 * r0, 4.0) + st.border_margin_px + 1.0
-        touches = x0 <= 0 or y0 <= 0 or x0 + w >= cols or y0 + h >= rows
-        if touches or cx - reach < 0 or cy - reach < 0 or cx + reach > cols - 1 or cy + reach > rows - 1:
-            rej.add((cx, cy), a, "edge_cut", "shadow touches the image border" if touches
-                    else "measuring annulus leaves the image")
-            continue
-        aspect = max(w, h) / max(1, min(w, h))
-        if aspect > 1.6 * st.max_axis_ratio:
-            rej.add((cx, cy), a, "overlap", f"blob bounding box aspect {aspect:.2f}: merged shadows")
-            continue
-        blob = extra_lab[i - n_main] if piece else (labels[y0:y0 + h, x0:x0 + w] == i + 1)
-        mom = cv2.moments(blob.view(np.uint8), binaryImage=True)
-        mu20, mu02, mu11 = mom["mu20"] / mom["m00"], mom["mu02"] / mom["m00"], mom["mu11"] / mom["m00"]
-        tr_, dd_ = mu20 + mu02, np.sqrt(max((mu20 - mu02) ** 2 + 4 * mu11 ** 2, 0.0))
-        l1, l2 = 0.5 * (tr_ + dd_), 0.5 * (tr_ - dd_)
-        m_ratio = np.sqrt(l1 / l2) if l2 > 0 else np.inf
-        if m_ratio > st.max_axis_ratio:
-            rej.add((cx, cy), a, "overlap", f"blob moment axis ratio {m_ratio:.2f} > {st.max_axis_ratio}: "
-                                            "merged shadows")
-            continue
-        cand.append(i)
-        c_cent.append((cx, cy))
-        c_rad.append(r0)
-        c_area.append(a)
+        if not piece and np.isfinite(dmax):
+            op = cv2.morphologyEx(blob.view(np.uint8), cv2.MORPH_OPEN, disk)
+            n2, lab2, st2, ce2 = cv2.connectedComponentsWithStats(op, connectivity=8)
+            new = []
+            for j in range(1, n2):
+                if st2[j, cv2.CC_STAT_AREA] < 0.5 * np.pi * dmin ** 2 / 4.0:
+                    continue
+                x2, y2, w2, h2, a2 = (int(v) for v in st2[j])
+                new.append((np.array([x0 + x2, y0 + y2, w2, h2, a2]), np.array([ce2[j, 0] + x0, ce2[j, 1] + y0]),
+                            lab2[y2:y2 + h2, x2:x2 + w2] == j, True, -1))
+            # a real split, or a single piece that lost a band: screen the pieces instead
+            if len(new) >= 2 or (len(new) == 1 and new[0][0][4] < a):
+                split_parent.add(lab)
+                work.extend(new)
+                pieces.extend(new)
+                continue
+        rej.add((cx, cy), a, *why)
     # proximity: penumbrae of neighbours interact; compared with every compact blob of
-    # noticeable size (accepted or not), by centre distance minus both radii
+    # noticeable size (accepted or not, pieces instead of their parents), by centre distance
+    # minus both radii
+    allc = [cents[i] for i in range(stats.shape[0]) if i not in split_parent] + [p[1] for p in pieces]
+    alla = [area[i] for i in range(stats.shape[0]) if i not in split_parent] + [float(p[0][4]) for p in pieces]
+    allc = np.array(allc, dtype=np.float64).reshape(-1, 2)
+    alld = 2.0 * np.sqrt(np.array(alla, dtype=np.float64) / np.pi)
+    others = (alld >= max(3.0, 0.5 * dmin)) & (alld <= dmax)
+    oc, od = allc[others], alld[others]
     keep = []
-    if cand:
-        allc = np.array(all_cents).reshape(-1, 2)
-        alla = np.array([float(s_[4]) for s_ in all_stats])
-        alld = 2.0 * np.sqrt(alla / np.pi)
-        others = np.nonzero((alld >= max(3.0, 0.5 * dmin)) & (alld <= dmax))[0]
-        others = np.array([o for o in others if o not in split_parent], dtype=np.intp)
-        for k, i in enumerate(cand):
-            cx, cy = c_cent[k]
-            gap = np.hypot(allc[others, 0] - cx, allc[others, 1] - cy) - c_rad[k] - 0.5 * alld[others]
-            gap[others == i] = np.inf
-            g = float(np.min(gap)) if gap.size else np.inf
-            if g < st.proximity_margin_px:
-                rej.add((cx, cy), c_area[k], "overlap", f"gap {max(g, 0.0):.1f} px to a neighbouring shadow "
-                                                        f"< {st.proximity_margin_px:.1f} px")
-            else:
-                keep.append(k)
+    for (wi, (cx, cy), r0, a) in cand:
+        gap = np.hypot(oc[:, 0] - cx, oc[:, 1] - cy) - r0 - 0.5 * od
+        gap[np.hypot(oc[:, 0] - cx, oc[:, 1] - cy) < 1e-9] = np.inf       # itself
+        g = float(np.min(gap)) if gap.size else np.inf
+        if g < st.proximity_margin_px:
+            rej.add((cx, cy), a, "overlap", f"gap {max(g, 0.0):.1f} px to a neighbouring shadow "
+                                            f"< {st.proximity_margin_px:.1f} px")
+        else:
+            keep.append((cx, cy, r0, a))
     # pixels of every compact shadow (not of bands or steps), grown by 2 px for the blurred rims:
     # the local background models leave them out
     shadows = mask.copy()
-    not_shadow = np.nonzero(~((d_eq >= 0.5 * dmin) & (area <= 3.5 * single_area_max)))[0].tolist()
-    for i in set(not_shadow) | split_parent:
+    not_shadow = set(np.nonzero(~((d_eq >= 0.5 * dmin) & (area <= 3.5 * single_area_max)))[0].tolist())
+    for i in not_shadow | split_parent:
         x0, y0, w, h = (int(v) for v in stats[i, :4])
         box = shadows[y0:y0 + h, x0:x0 + w]
         box[labels[y0:y0 + h, x0:x0 + w] == i + 1] = 0
-    for (x0, y0, w, h, _), sub in zip(extra_stats, extra_lab):
-        shadows[y0:y0 + h, x0:x0 + w] |= sub.view(np.uint8)
+    for s_, _, blob, _, _ in pieces:
+        x0, y0, w, h = (int(v) for v in s_[:4])
+        shadows[y0:y0 + h, x0:x0 + w] |= blob.view(np.uint8)
     shadows = cv2.dilate(shadows, np.ones((5, 5), np.uint8))
-    return _Candidates(index=np.array([cand[k] for k in keep], dtype=np.intp),
-                       centre=np.array([c_cent[k] for k in keep], dtype=np.float64).reshape(-1, 2),
-                       radius=np.array([c_rad[k] for k in keep], dtype=np.float64),
-                       area=np.array([c_area[k] for k in keep], dtype=np.float64),
-                       shadows=shadows)
+    kp = np.array(keep, dtype=np.float64).reshape(-1, 4)
+    return _Candidates(index=np.arange(kp.shape[0]), centre=kp[:, :2].copy(), radius=kp[:, 2].copy(),
+                       area=kp[:, 3].copy(), shadows=shadows)
 
 
-# --------------------------------------------------------------------------- stage 5: local background
+# --------------------------------------------------------------------------- stage 4: local background
 
 @dataclass
 class _LocalBackground:
