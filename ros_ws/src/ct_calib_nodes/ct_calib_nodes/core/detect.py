@@ -429,10 +429,14 @@ def to_transmission(image, encoding: str = "mono16", flat_field_counts=None,
             ff = ff - d
             if np.any(ff <= 0):
                 raise FrameError("bad_flat_field", "flat field minus dark must be > 0 everywhere")
-        num = img.astype(np.float32)
         if np.ndim(d) or d:
+            num = img.astype(np.float32)
             num -= d
-        trans = num / ff if np.ndim(ff) else num * np.float32(1.0 / float(ff))
+            trans = num / ff if np.ndim(ff) else num * np.float32(1.0 / float(ff))
+        elif np.ndim(ff):
+            trans = cv2.divide(img.astype(np.float32), ff)
+        else:
+            trans = cv2.multiply(img, 1.0 / float(ff), dtype=cv2.CV_32F)
     else:
         if not np.issubdtype(img.dtype, np.floating):
             raise FrameError("wrong_dtype", f"32FC1 frames must be floating point, got {img.dtype}")
@@ -690,7 +694,7 @@ def shadow_diameter_range_px(diameters_m, centres_of_m, sdd_m: float, srd_m: flo
 
 def _noise_level(trans) -> float:
     """Robust sd of the pixel noise at the open-beam level, from neighbouring-pixel differences."""
-    d = (trans[4:-4:8, 5:-4:4] - trans[4:-4:8, 4:-5:4]).ravel()
+    d = (trans[4:-4:16, 5:-4:8] - trans[4:-4:16, 4:-5:8]).ravel()
     s = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2.0)
     return max(s, 1e-6)
 
@@ -998,10 +1002,13 @@ def _local_backgrounds(trans, bg, cand, st):
     ev = np.stack([-eu[:, 1], eu[:, 0]], axis=1)
     us = np.arange(-U, U + 1, dtype=np.float32)
     vs = np.arange(-V, V + 1, dtype=np.float32)
-    dxg = eu[:, 0, None, None] * us[None, :, None] + ev[:, 0, None, None] * vs[None, None, :]
-    dyg = eu[:, 1, None, None] * us[None, :, None] + ev[:, 1, None, None] * vs[None, None, :]
-    px = origin[:, 0, None, None] + dxg
-    py = origin[:, 1, None, None] + dyg
+    e32 = eu.astype(np.float32)
+    v32 = ev.astype(np.float32)
+    dxg = e32[:, 0, None, None] * us[None, :, None] + v32[:, 0, None, None] * vs[None, None, :]
+    dyg = e32[:, 1, None, None] * us[None, :, None] + v32[:, 1, None, None] * vs[None, None, :]
+    o32 = origin.astype(np.float32)
+    px = o32[:, 0, None, None] + dxg
+    py = o32[:, 1, None, None] + dyg
     inside = (px >= 0) & (px <= cols - 1) & (py >= 0) & (py <= rows - 1)
     s = np.empty(px.shape, np.float32)
     sh = np.empty(px.shape, np.uint8)
@@ -1017,10 +1024,10 @@ def _local_backgrounds(trans, bg, cand, st):
         s[k] = _bilinear(trans, np.clip(px[k], 0, cols - 1), np.clip(py[k], 0, rows - 1))
         sh[k] = cand.shadows[np.clip(np.rint(py[k]).astype(np.intp), 0, rows - 1),
                              np.clip(np.rint(px[k]).astype(np.intp), 0, cols - 1)]
-    dx = px - c[:, 0, None, None]
-    dy = py - c[:, 1, None, None]
+    dx = dxg + (o32[:, 0] - c[:, 0]).astype(np.float32)[:, None, None]
+    dy = dyg + (o32[:, 1] - c[:, 1]).astype(np.float32)[:, None, None]
     noise = cand.noise
-    wgt = (inside & (dx * dx + dy * dy > (rex * rex)[:, None, None]) & (sh == 0)).astype(np.float32)
+    wgt = (inside & (dx * dx + dy * dy > (rex * rex).astype(np.float32)[:, None, None]) & (sh == 0)).astype(np.float32)
     vv = vs[None, None, :]
     a, b = _line_fit(s, wgt, vv)
     fit = a[:, :, None] + b[:, :, None] * vv
@@ -1102,7 +1109,7 @@ class _Measurement:
     edge_shift: np.ndarray  # (C, 2) centre minus the centre fitted without background-edge points
 
 
-def _edge_points(trans, model, centre, radius, st, first, level):
+def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True):
     """Sub-pixel edge points along rays (vectorised over candidates).
 
     Pass 1: ``n_rays/2`` rays over the whole edge zone, which also measure the inner shadow
@@ -1149,11 +1156,14 @@ def _edge_points(trans, model, centre, radius, st, first, level):
     ey = centre[:, 1, None] + sphi[None, :] * r_edge
     # edge points where the background itself changes fast across the structure (> gradient
     # over 4 px): a band or step edge, whose sub-pixel mixing with the shadow no division undoes
-    _, u = _background_at(model, ex, ey)
-    n = model.a.shape[1]
-    iu = np.clip(np.rint(u - model.umin).astype(np.intp), 0, n - 1)
-    g = np.take_along_axis(model.edge_gradient, iu, axis=1)
-    on_edge = valid & (g > st.background_edge_gradient)
+    on_edge = None
+    if want_edge:
+        ox, oy = model.origin[:, 0, None], model.origin[:, 1, None]
+        u = (ex - ox) * model.eu[:, 0, None] + (ey - oy) * model.eu[:, 1, None]
+        n = model.a.shape[1]
+        iu = np.clip(np.rint(u - model.umin).astype(np.intp), 0, n - 1)
+        g = np.take_along_axis(model.edge_gradient, iu, axis=1)
+        on_edge = valid & (g > st.background_edge_gradient)
     return ex, ey, valid, level, qmin, on_edge, nr
 
 
@@ -1177,7 +1187,8 @@ def _measure_edges_and_fit(trans, model, cand, st):
     for pas in range(int(st.n_passes)):
         first = pas == 0
         last_pass = pas == int(st.n_passes) - 1
-        ex, ey, valid, level, qm, on_edge, nr = _edge_points(trans, model, centre, radius, st, first, level)
+        ex, ey, valid, level, qm, on_edge, nr = _edge_points(trans, model, centre, radius, st, first, level,
+                                                             want_edge=last_pass)
         if first:
             qmin = qm
         if last_pass:
@@ -1191,7 +1202,7 @@ def _measure_edges_and_fit(trans, model, cand, st):
                 why[c] = f"only {np.count_nonzero(v)} of {nr} rays found an edge"
                 continue
             pts = np.stack([ex[c, v], ey[c, v]], axis=1)
-            oe = on_edge[c, v]
+            oe = on_edge[c, v] if on_edge is not None else np.zeros(int(np.count_nonzero(v)), bool)
             try:
                 p = _fit_one(pts, st.ellipse_fitter)
                 n_fits += 1
