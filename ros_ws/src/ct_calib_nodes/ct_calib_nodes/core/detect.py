@@ -1,39 +1,47 @@
 """Sub-pixel detection of sphere shadows in CT projections.
 
-One pure function, :func:`detect_spheres`, turns one projection (``mono16``
-counts or ``32FC1`` transmission, see INTERFACES.md) into the ellipse centres
-of every sphere shadow it can measure, plus the list of candidates it refused
-and why. It keeps no state, so a bad frame raises :class:`FrameError` for that
-frame only and the rest of a run is unaffected.
+One pure function, :func:`detect_spheres`, turns one projection (counts in
+``mono16``/``16UC1``/``mono8``/``8UC1`` or ``32FC1`` transmission, see
+INTERFACES.md) into the ellipse centres of every sphere shadow it can
+measure, plus the list of candidates it refused and why. It keeps no state,
+so a bad frame raises :class:`FrameError` for that frame only and the rest of
+a run is unaffected. Nothing in it assumes a particular holder (tube, plate,
+foam) or its orientation in the image.
 
-Pipeline (numbers are the defaults of :class:`DetectionSettings`)
+Pipeline (one named function per stage; numbers are the defaults of
+:class:`DetectionSettings`)
 ------------------------------------------------------------------
-1. Frame checks and conversion to transmission ``T = I / I0`` (float32; the
-   photon noise of a 50000-count frame is 4.5e-3 in T, far above float32
-   resolution). Bad frames -> :class:`FrameError` with a ``reason``.
-2. Background: the frame is divided by a vertical morphological closing of
-   itself (see ``DetectionSettings.vertical_background``), which keeps the
-   carbon-fibre tube's dark tangential bands and removes the spheres, so the
-   normalised open-beam level is b ~ 1. Segmentation: pixels with
-   ``T < b * (1 - 0.10)`` are shadow. At 50000 counts the noise is
-   about 0.0045 b, so the threshold sits ~22 sigma below the background and
-   noise never makes a blob. 8-connected components with OpenCV.
-3. Candidate screening, each refusal recorded with a reason code:
-   ``edge_cut`` (shadow or its measuring annulus leaves the image),
-   ``not_a_sphere_size`` (far smaller than the expected diameter, or larger
-   than three merged spheres: tube wall, dirt), ``not_a_sphere_contrast``
-   (too shallow), ``overlap`` (blob too large for one sphere, too elongated,
-   not elliptical, darker than one sphere can be, or a neighbour so close that
-   the shadows' penumbrae touch), ``fit_failed``, ``background_structure``
-   (the tube's end rim meets a wall band across the shadow). Overlaps are
-   rejected, never split (the paper's automated overlap rejection). Shadows
-   straddling the end rim get a repaired background; shadows on a wall-band
-   edge are flagged and carry extra column uncertainty (settings).
-4. Sub-pixel edges: ``n_rays`` radial profiles from the blob centre, sampled
-   by exact (float64 weight) bilinear interpolation, normalised by a local
-   planar background fitted on the outer ring (so flat-field gradients do not
-   shift the edge), and cut at the iso-level ``1 - 0.5 (1 - q_in)`` half way
-   between the local background and the inner shadow. Every iso-transmission
+1. Flat field, :func:`to_transmission`: frame checks and
+   ``T = (I - dark) / (flat - dark)`` (float32; flat a scalar or an image, dark
+   a level or an image, both optional). Bad frames -> :class:`FrameError`.
+2. Segmentation background, ``_segmentation_background``: the pointwise
+   minimum of closings with line segments in 6 directions, longer than a
+   shadow (half resolution, 16 bit). Each closing removes every shadow and
+   keeps straight steps of any orientation (a monotone profile is its own
+   closing); the minimum keeps dark bands long in some direction (tube walls
+   at any tilt, a plate seen edge-on).
+3. Candidates, ``_candidates``: ``T / background < 1 - 0.10`` (at 50000
+   counts ~22 noise sd), 8-connected components, screening with a reason
+   code per refusal: ``edge_cut``, ``not_a_sphere_size``, ``overlap`` (too
+   large, elongated or not elliptical, or a neighbour closer than 4 px, whose
+   penumbra would bias the edge). A blob refused as merged is first split by a
+   binary opening with a disk of 0.8 x the smallest shadow (a sphere on a band,
+   two shadows joined by their rims) and the pieces screened. Overlapping
+   shadows are rejected, never split into two fits.
+4. Local background per shadow, ``_local_backgrounds``: the direction of the
+   strongest structure round the shadow from the structure tensor of the
+   frame's gradients off the shadows (snapped to the pixel axes within
+   1.5 deg); on a grid turned to it, every line across the shadow is fitted by
+   a straight line along the structure through the samples outside the shadow
+   (radius + 3 px; other shadows masked; samples 4 noise sd below the first fit
+   dropped), so steps and bands of any orientation through the shadow and any
+   smooth gradient (heel effect, vignetting) are interpolated across it. Hot
+   and dead pixels in these windows (beyond all 8 neighbours by 6 noise sd)
+   are replaced by their neighbours' mean and counted.
+5. Sub-pixel edges, ``_edge_points``: ``n_rays`` radial profiles from the
+   blob centre, exact (float64 weight) bilinear interpolation, divided by the
+   local background, cut at the iso-level ``1 - 0.5 (1 - q_in)`` half way
+   between the background and the inner shadow. Every iso-transmission
    contour of a sphere is an iso-chord contour, i.e. the section of a circular
    cone of rays around the source-to-centre line, hence an exact ellipse.
    A second pass re-centres the rays on the first fit.
@@ -46,12 +54,21 @@ Pipeline (numbers are the defaults of :class:`DetectionSettings`)
    algebraic fitters' bias is O(sigma^2 / R) ~ 1e-4 px and all four agree to
    well under 0.005 px, so the default is ``cv2.fitEllipse`` (fastest; the
    geometric refinement costs ~10x more and buys nothing measurable).
-6. Centre uncertainty: ``f sigma_edge^2 (sum_i n_i n_i^T)^-1`` with ``n_i`` the
-   edge normals, ``sigma_edge`` the fit RMS (degrees-of-freedom corrected) and
-   ``f = max(1, n / (pi r))`` for the correlation of neighbouring rays, which
-   sample shared pixels. It covers the photon noise only; the measured spread
-   on rendered frames is still ~1.3x larger (doc/ct_detect.md).
-7. Optional Deng / Clackdoyle correction from the ellipse centre to the
+6. Rejection after the fit, ``_screen_fits``: ``not_a_sphere_contrast``,
+   ``overlap`` (axis ratio, darker than one sphere), ``not_a_sphere_shape``
+   (edge RMS), ``not_a_sphere_size``, ``background_structure`` (the background
+   also changes along its main structure, > 2x the frame's median: a corner
+   of two steps; or the local model misfits > 3x the frame's median).
+7. Centre uncertainty, ``_centre_uncertainty``: ``f sigma_edge^2 (sum_i n_i
+   n_i^T)^-1`` with ``n_i`` the edge normals, ``sigma_edge`` the fit RMS
+   (degrees-of-freedom corrected) and ``f = max(1, n / (pi r))`` for the
+   correlation of neighbouring rays, which sample shared pixels. Shadows whose
+   edge crosses a background edge (band or step: the sub-pixel mixing of the
+   two is not undone by any division) add, from their own data, the outer
+   product of the centre's change when the points on that edge are left out
+   of the fit and a cluster-robust term with each run of those points as one
+   cluster.
+8. Optional Deng / Clackdoyle correction from the ellipse centre to the
    projection of the sphere centre, given the nominal source-to-detector
    distance in pixels and the principal point (detector centre by default).
    For a cone of half angle beta around an axis at angle tau from the detector
@@ -165,33 +182,41 @@ class DetectionSettings:
     border_margin_px : float
         Shadows whose measuring annulus comes closer than this to the image
         border are ``edge_cut``.
-    vertical_background : bool
-        Divide the frame by its background estimated with a vertical
-        morphological closing (1x3 vertical box blur, then a 1 x L line), which removes
-        every dark feature shorter than L rows (the spheres) and keeps features
-        that are long along the rotation axis: the carbon-fibre tube, whose
-        tangential walls cast dark bands (T ~ 0.7) right where the spheres at
-        the sides of the object project. Without it about half of helix49's
-        spheres merge with the tube bands. Assumes the object is roughly
-        upright (tube axis within a few degrees of the image columns).
     background_window_px : int or None
-        L; None: ``2 * max diameter + 9`` px (61 px without a diameter range).
-    repair_horizontal_steps : bool
-        With ``vertical_background``: where a roughly horizontal background
-        step (the tube's end rim) crosses a shadow, replace the closing's
-        background under it by a horizontal interpolation (the closing puts
-        the step at the shadow's border: row bias up to 0.1 px without this).
-    background_edge_gradient, background_edge_min_fraction, background_edge_sigma_px : float
-        A shadow more than ``min_fraction`` of whose edge points lie where the
-        background changes by more than ``gradient`` (relative) over 4 columns
-        (a tube-wall band edge) gets ``sigma_px`` added in quadrature to its
-        column uncertainty [px]. The inner edge of a wall band is a sub-pixel
-        cusp; averaging the product of shadow and band over a pixel (and the
-        detector blur) mixes them, which no division by a background undoes.
-        Calibrated on 1989 rendered detections (helix49 + tube, k = 1 and the
-        last position, seeds 5, 6, 11, 12): column rms 0.0143 px on the 537
-        flagged shadows (reported 0.0064) vs 0.0059 px on the others; 0.012 px
-        makes the mean squared column z-score 1. 0 disables.
+        Length L of the segmentation closings' line segments; None:
+        ``1.5 * max diameter * (1 + size_tolerance) + 7`` px (61 px without a range).
+    n_orientations : int
+        Directions of the segmentation closings (180 deg / n apart).
+    snap_deg : float
+        Local background orientations within this of a pixel axis are snapped to it.
+    exclusion_px : float
+        Margin beyond the blob radius left out of the local background fit (blur, penumbra).
+    background_span_px : float
+        Least length of the background samples on each side of a shadow along the structure.
+    max_background_misfit, max_cross_structure : float
+        ``background_structure`` when the local model's misfit, or the gradient energy
+        along the main structure, exceeds this factor times the frame's median.
+    hot_pixel_sigma : float
+        Hot/dead pixel threshold in noise sd beyond all 8 neighbours; 0 disables.
+    orientation_from_frame : bool
+        Structure tensor from the frame (off the shadows); False: from the segmentation background.
+    fixed_orientation_deg : float or None
+        For comparisons only: one orientation of the local model everywhere (0 = vertical lines).
+    background_edge_gradient, background_edge_min_fraction : float
+        A shadow more than ``min_fraction`` of whose edge points lie where the local
+        background changes by more than ``gradient`` (relative) over 4 px across its
+        structure (a band or step edge) is ``on_background_edge``: averaging the product of
+        shadow and band over a pixel (and the detector blur) mixes them, which no division
+        by a background undoes.
+    background_edge_refit : bool
+        For those shadows, add the outer product of the centre's change when the points on
+        the background edge are left out of the fit (the data's own estimate of the effect).
+    background_edge_clusters : float
+        Weight of the cluster-robust term (each run of edge points on the background edge
+        one cluster of the sandwich covariance); 0 disables.
+    background_edge_sigma_px : float
+        A fixed extra sd [px] across the structure for those shadows (0 = off; the former
+        default 0.012 px was calibrated on the simulator's carbon tube).
     """
 
     segment_depth: float = 0.10
@@ -239,6 +264,12 @@ class DetectionSettings:
                              "and background_edge_sigma_px >= 0")
         if int(self.n_passes) < 1:
             raise ValueError("n_passes must be >= 1")
+        if int(self.n_orientations) < 2 or not self.hot_pixel_sigma >= 0 or not self.exclusion_px >= 0:
+            raise ValueError("n_orientations must be >= 2, hot_pixel_sigma and exclusion_px >= 0")
+        if not (self.max_background_misfit > 0 and self.max_cross_structure > 0 and self.background_span_px > 0
+                and self.background_edge_clusters >= 0):
+            raise ValueError("max_background_misfit, max_cross_structure, background_span_px must be > 0, "
+                             "background_edge_clusters >= 0")
 
 
 @dataclass(frozen=True)
@@ -293,16 +324,20 @@ class FrameDetections:
     min_transmission : ndarray of shape (M,)
         Darkest normalised transmission in the shadow.
     on_background_edge : ndarray of shape (M,), bool
-        The shadow's edge crosses a strong vertical background edge (a tube
-        wall band); its column variance includes ``background_edge_sigma_px``.
+        The shadow's edge crosses a strong background edge (a band or step of the
+        holder); its covariance includes the data-driven background-edge terms.
     rejected : RejectedCandidates
     background : float
-        Open-beam transmission level of the frame.
+        Open-beam level of the normalised frame (1: every shadow is divided by its local background).
     success : bool
         False only if not a single sphere was accepted.
     message : str
     nfev : int
         Number of ellipse fits performed.
+    n_hot_pixels : ndarray of shape (M,), int
+        Hot/dead pixels repaired within 1.5 semi-major axes + 4 px of each centre.
+    hot_pixels_px : ndarray of shape (K, 2)
+        (col, row) of every repaired hot/dead pixel near a shadow.
     """
 
     centre_px: np.ndarray
