@@ -198,8 +198,6 @@ class DetectionSettings:
         along the main structure, exceeds this factor times the frame's median.
     hot_pixel_sigma : float
         Hot/dead pixel threshold in noise sd beyond all 8 neighbours; 0 disables.
-    orientation_from_frame : bool
-        Structure tensor from the frame (off the shadows); False: from the segmentation background.
     fixed_orientation_deg : float or None
         For comparisons only: one orientation of the local model everywhere (0 = vertical lines).
     background_edge_gradient, background_edge_min_fraction : float
@@ -241,7 +239,6 @@ class DetectionSettings:
     max_background_misfit: float = 3.0
     max_cross_structure: float = 2.0
     hot_pixel_sigma: float = 6.0
-    orientation_from_frame: bool = True
     fixed_orientation_deg: float | None = None
     background_edge_gradient: float = 0.04
     background_edge_min_fraction: float = 0.05
@@ -783,7 +780,7 @@ def _segmentation_background(trans, st, drange):
     keeps straight steps of any orientation (plate edges, field stops: a monotone profile is
     its own closing); the minimum keeps dark bands (tube walls, a plate seen edge-on) that
     are long in at least one of the directions. Computed at half resolution (area average,
-    which also lowers the noise) and interpolated back. float32 (rows, cols)."""
+    which also lowers the noise) and interpolated back. uint16 (rows, cols), T x 16384."""
     if st.background_window_px is not None:
         win = int(st.background_window_px)
     elif drange is not None:
@@ -801,7 +798,7 @@ def _segmentation_background(trans, st, drange):
         c = cv2.morphologyEx(half, cv2.MORPH_CLOSE, ker, borderType=cv2.BORDER_REPLICATE)
         out = c if out is None else np.minimum(out, c, out=out)
     bg = cv2.resize(out, (cols, rows), interpolation=cv2.INTER_LINEAR)
-    return np.maximum(bg, 1).astype(np.float32) * np.float32(1.0 / 16384.0)
+    return np.maximum(bg, 1, out=bg)           # uint16, transmission x 16384
 
 
 _KERNELS = {}
@@ -845,7 +842,7 @@ def _candidates(trans, bg, st, drange, rej):
     split by a binary opening with a disk of 0.8 x the smallest shadow; its pieces are screened
     like blobs (and refused if still merged)."""
     rows, cols = trans.shape
-    ratio = cv2.divide(trans, bg)
+    ratio = cv2.divide(trans, bg, scale=16384.0, dtype=cv2.CV_32F)
     thr = np.float32(1.0 - st.segment_depth)
     mask = (ratio < thr).view(np.uint8)
     n_lab, labels, stats, cents = cv2.connectedComponentsWithStats(mask, connectivity=8)
@@ -867,6 +864,7 @@ def _candidates(trans, bg, st, drange, rej):
     # level) are noise, not shadows: left out without a record
     exposed = bg[np.clip(np.rint(cents[:, 1]).astype(np.intp), 0, rows - 1),
                  np.clip(np.rint(cents[:, 0]).astype(np.intp), 0, cols - 1)] > 0.25 * float(np.median(bg[::16, ::16]))
+    # (bg: uint16, transmission x 16384)
     work = [(stats[i], cents[i], None, False, i) for i in range(stats.shape[0]) if exposed[i]]
     pieces = []                  # (stats, centroid, blob) of every piece made
     split_parent = set()
