@@ -28,6 +28,7 @@ setup(
             "ct_error_motion = ct_calib_nodes.nodes.ct_error_motion:main",
             "ct_demo = ct_calib_nodes.nodes.ct_demo:main",
             "ct_offline_solve = ct_calib_nodes.offline:main",
+            "ct_discrepancy = ct_calib_nodes.discrepancy_cli:main",
         ],
     },
 )

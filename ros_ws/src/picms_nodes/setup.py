@@ -9,12 +9,20 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", ["config/picms_cell.yaml"]),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
     maintainer="Metrology cell team",
     maintainer_email="metrology@example.com",
-    description="Pixel Probe / PiCMS cell (skeleton; nodes arrive with their issues)",
+    description="Pixel Probe / PiCMS cell: camera, stage and tracker simulators, Pixel Probe calibration",
     license="Apache-2.0",
-    entry_points={"console_scripts": []},
+    entry_points={"console_scripts": [
+        "picms_stage_sim = picms_nodes.nodes.picms_stage_sim:main",
+        "picms_camera_sim = picms_nodes.nodes.picms_camera_sim:main",
+        "picms_tracker_sim = picms_nodes.nodes.picms_tracker_sim:main",
+        "picms_calibration = picms_nodes.nodes.picms_calibration:main",
+        "picms_calibrate_offline = picms_nodes.offline:main",
+        "picms_demo = picms_nodes.nodes.picms_demo:main",
+    ]},
 )

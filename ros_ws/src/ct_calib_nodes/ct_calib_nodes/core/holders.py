@@ -166,8 +166,8 @@ def plate_object(n_side: int = 5, pitch_m: float = 0.016, diameter_m: float = 0.
 
 # --------------------------------------------------------------------------- renderer hook
 
-def trace_background(line_integral, detector, k1: float, oversample: int, sample_points,
-                     refine_oversample: int = 4, jump: float = 1e-3):
+def trace_background(line_integral, detector, k1: float, oversample: int, sample_points, effects=(),
+                     source_df_m=None, refine_oversample: int = 4, jump: float = 1e-3):
     """Transmission of the holders (and tube) over the whole detector, for the renderer.
 
     Traced at ``oversample``; every pixel whose line integral differs from a
@@ -177,7 +177,7 @@ def trace_background(line_integral, detector, k1: float, oversample: int, sample
     Returns (trans (rows, cols) float32, number of rays).
     """
     os_ = int(oversample)
-    xs, ys = sample_points(detector, 0, detector.cols - 1, 0, detector.rows - 1, os_, k1)
+    xs, ys = sample_points(detector, 0, detector.cols - 1, 0, detector.rows - 1, os_, k1, effects, source_df_m)
     line = line_integral(xs, ys)
     if os_ > 1:
         line = line.reshape(detector.rows, os_, detector.cols, os_)
@@ -200,6 +200,10 @@ def trace_background(line_integral, detector, k1: float, oversample: int, sample
         cc = (c[:, None, None] + sub[None, None, :]) + np.zeros((1, ro, 1))
         rr = (r[:, None, None] + sub[None, :, None]) + np.zeros((1, 1, ro))
         x, y = detector.metric_from_pixels(cc, rr)
+        if effects:   # the same landing points as render._sample_points
+            from .render_effects import landing_from_recorded  # noqa: PLC0415
+            xy = landing_from_recorded(effects, np.stack([x, y], axis=-1), source_df_m)
+            x, y = xy[..., 0], xy[..., 1]
         if k1 != 0.0:
             from .render import undistort  # noqa: PLC0415
             xy = undistort(np.stack([x, y], axis=-1), k1)

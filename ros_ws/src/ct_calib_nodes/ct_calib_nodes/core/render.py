@@ -40,6 +40,10 @@ Hidden physics (all off by default; the solvers are never told about them):
   model it (ct_model.py). False translates each shadow so that its ellipse
   centre coincides with the centre projection (the textbook model of the
   paper), for tests of that model only.
+- ``effects``: further hidden physics from render_effects.py (detector bow,
+  rotary runout and tilt error motions, stage and detector drift, thermal
+  expansion of the object, encoder harmonics), applied through small hooks on
+  the rotary angle, the placed scene and the detector's recorded position.
 """
 
 from __future__ import annotations
@@ -59,6 +63,7 @@ from .geometry import (  # noqa: F401 - silhouette_ellipses is part of this modu
     static_to_detector_frame,
 )
 from .phantom import MU_STEEL_100KEV_PER_M, ReferenceObject
+from . import render_effects
 
 MONO16_MAX = 65535
 
@@ -124,6 +129,7 @@ class RenderSettings:
     detector_distortion_k1_per_m2: float = 0.0
     ellipse_centre_bias: bool = True
     touch_gap_px: float = 1.0
+    effects: tuple = ()     # render_effects.RenderEffect instances (hidden physics, off by default)
 
     def __post_init__(self):
         scalars = {
@@ -152,6 +158,7 @@ class RenderSettings:
         if drift.shape != (3,) or not np.all(np.isfinite(drift)):
             raise ValueError(f"focal_spot_drift_m_per_s must be 3 finite values, got {drift.shape}")
         object.__setattr__(self, "focal_spot_drift_m_per_s", tuple(float(x) for x in drift))
+        object.__setattr__(self, "effects", render_effects.check_effects(self.effects))
 
 
 @dataclass(frozen=True)
@@ -254,7 +261,8 @@ def undistort(xy_rec_m, k1_per_m2: float, iterations: int = 6) -> np.ndarray:
 def true_rotary_angle(alpha_rad: float, settings: RenderSettings) -> float:
     """Encoder eccentricity: ``alpha + A sin(alpha + phi)`` [rad]."""
     return float(alpha_rad + settings.encoder_eccentricity_rad
-                 * np.sin(alpha_rad + settings.encoder_phase_rad))
+                 * np.sin(alpha_rad + settings.encoder_phase_rad)
+                 + render_effects.angle_delta(settings.effects, alpha_rad))
 
 
 def sphere_chords(source_df_m, x_m, y_m, centre_df_m, radius_m) -> np.ndarray:
@@ -388,8 +396,9 @@ def _truth_from_placed(ref, detector, settings, w, m, alpha, alpha_true, time_s,
     cp_m = project_df(src, centres_df, DetectorSpec(1, 1, 1.0))  # (col,row) about centre 0: x, -y
     cp_m = np.stack([cp_m[:, 0], -cp_m[:, 1]], axis=1)            # metric (x, y) in the plane
     ell_m, axes_m = silhouette_ellipses(src, centres_df, ref.radii_m)
-    rec_cp = distort(cp_m, k1)
-    rec_ell = distort(ell_m, k1) if settings.ellipse_centre_bias else rec_cp
+    rec_cp = render_effects.recorded_from_landing(settings.effects, distort(cp_m, k1), src)
+    rec_ell = (render_effects.recorded_from_landing(settings.effects, distort(ell_m, k1), src)
+               if settings.ellipse_centre_bias else rec_cp)
     centre_px = np.stack(detector.pixels_from_metric(rec_cp[:, 0], rec_cp[:, 1]), axis=1)
     ell_px = np.stack(detector.pixels_from_metric(rec_ell[:, 0], rec_ell[:, 1]), axis=1)
     axes_px = axes_m / pitch
@@ -433,6 +442,7 @@ def frame_truth(static_w, motion, alpha_rad, ref: ReferenceObject, detector: Det
     w, m, a, t = _check_inputs(static_w, motion, alpha_rad, ref, detector, settings, time_s)
     at = true_rotary_angle(a, settings)
     geom, c, _ = _object_points_df(w, ref, m, at)
+    geom, c, _ = render_effects.place(settings.effects, geom, c, None, a, t)
     return _truth_from_placed(ref, detector, settings, w, m, a, at, t, geom, c)[0]
 
 
@@ -440,13 +450,16 @@ def frame_truth(static_w, motion, alpha_rad, ref: ReferenceObject, detector: Det
 # Rendering
 # --------------------------------------------------------------------------
 
-def _sample_points(detector, c0, c1, r0, r1, os, k1):
+def _sample_points(detector, c0, c1, r0, r1, os, k1, effects=(), source_df_m=None):
     """Physical landing points x, y [m] in {DF} of the sub-samples of a pixel box."""
     sub = (np.arange(os) + 0.5) / os - 0.5
     cols = (np.arange(c0, c1 + 1)[:, None] + sub[None, :]).ravel()
     rows = (np.arange(r0, r1 + 1)[:, None] + sub[None, :]).ravel()
     x, y = detector.metric_from_pixels(cols[None, :], rows[:, None])
     x, y = np.broadcast_arrays(x, y)
+    if effects:   # recorded = effects(distort(landing)): undo the effects first
+        xy = render_effects.landing_from_recorded(effects, np.stack([x, y], axis=-1), source_df_m)
+        x, y = xy[..., 0], xy[..., 1]
     if k1 != 0.0:
         xy = undistort(np.stack([x, y], axis=-1), k1)
         x, y = xy[..., 0], xy[..., 1]
@@ -486,6 +499,7 @@ def _place_scene(w, m, a, t, ref, detector, settings, holders=()) -> _Scene:
     if anchors:
         extra = np.vstack(([] if extra is None else [extra]) + anchors)
     geom, centres, extra_df = _object_points_df(w, ref, m, at, extra)
+    geom, centres, extra_df = render_effects.place(settings.effects, geom, centres, extra_df, a, t)
     placed = []
     if anchors:
         k = 0 if not (tube is not None and mu_t > 0) else 2
@@ -539,7 +553,7 @@ def render_projection_bruteforce(static_w, motion, alpha_rad, ref: ReferenceObje
     allj = np.arange(ref.n_spheres)
     for r0 in range(0, detector.rows, rows_per_chunk):
         r1 = min(r0 + rows_per_chunk, detector.rows) - 1
-        xs, ys = _sample_points(detector, 0, detector.cols - 1, r0, r1, os_, sc.k1)
+        xs, ys = _sample_points(detector, 0, detector.cols - 1, r0, r1, os_, sc.k1, settings.effects, sc.src)
         trans[r0:r1 + 1] = _block_mean(np.exp(-_line_integrals(sc, xs, ys, allj)), os_)
     n_rays = detector.rows * detector.cols * os_ * os_
     return _finish(trans, sc.truth, settings, rng, output, n_rays)
@@ -587,7 +601,7 @@ def render_projection(static_w, motion, alpha_rad, ref: ReferenceObject, detecto
     if sc.holders:      # holders (and the tube) over the whole frame, edges re-traced (core/holders.py)
         from .holders import trace_background  # noqa: PLC0415
         trans, n_rays = trace_background(lambda x, y: _line_integrals(sc, x, y, []), detector, k1,
-                                         int(settings.tube_oversample), _sample_points)
+                                         int(settings.tube_oversample), _sample_points, settings.effects, src)
     elif tube_df is not None:
         a0, ax = tube_df[0], tube_df[1]
         # bounding box of the tube's shadow from the 8 corners of its box
@@ -608,7 +622,7 @@ def render_projection(static_w, motion, alpha_rad, ref: ReferenceObject, detecto
         r1 = min(int(np.ceil(rr.max())) + 1, detector.rows - 1)
         if c0 <= c1 and r0 <= r1:
             tos = int(settings.tube_oversample)
-            xs, ys = _sample_points(detector, c0, c1, r0, r1, tos, k1)
+            xs, ys = _sample_points(detector, c0, c1, r0, r1, tos, k1, settings.effects, src)
             tt = np.exp(-_line_integrals(sc, xs, ys, []))
             n_rays += tt.size
             trans[r0:r1 + 1, c0:c1 + 1] = _block_mean(tt, tos) if tos > 1 else tt
@@ -630,7 +644,7 @@ def render_projection(static_w, motion, alpha_rad, ref: ReferenceObject, detecto
         c0, c1 = max(b[i, 0], 0), min(b[i, 1], detector.cols - 1)
         r0, r1 = max(b[i, 2], 0), min(b[i, 3], detector.rows - 1)
         members = np.nonzero((b[:, 0] <= c1) & (c0 <= b[:, 1]) & (b[:, 2] <= r1) & (r0 <= b[:, 3]))[0]
-        xs, ys = _sample_points(detector, c0, c1, r0, r1, os_, k1)
+        xs, ys = _sample_points(detector, c0, c1, r0, r1, os_, k1, settings.effects, src)
         line = _line_integrals(sc, xs, ys, members)
         n_rays += line.size
         trans[r0:r1 + 1, c0:c1 + 1] = _block_mean(np.exp(-line), os_)

@@ -1,0 +1,188 @@
+"""Offline sim-to-real discrepancy check of a CT recording (issue 11).
+
+    ct_discrepancy RECORDING [--instrument ct_instrument.yaml] [--reference-object reference_object.yaml]
+                   [--out DIR] [--max-terms 4]
+
+The recording is replayed exactly as ``ct_offline_solve`` does (detection, identity,
+static solve with the nominal model); the first stage position's sphere centres and
+the nominal calibration then go through the discrepancy engine
+(core/ct_discrepancy.py). Written to ``--out`` (default ``<recording>_discrepancy``):
+``discrepancy.json`` (keys documented in doc/ct_discrepancy.md), ``report.md`` (the
+verdict first, then the tables) and PNG plots of the residual structure before and
+after. Files are written under temporary names and renamed; nothing is written when
+the recording gives no static calibration.
+
+Exit status: 0 verdict written (adequate or not); 1 nothing usable; 2 bad arguments or files.
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import shutil
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+
+def _plots(out, tmp: pathlib.Path, detector) -> list:
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    a = out["_arrays"]
+    q = len(a["alpha"])
+    files = []
+    rb, ra = np.asarray(a["residual_before"]), np.asarray(a["residual_after"])
+    for axis_name, xval, xlabel in (("angle", np.degrees(a["alpha"]), "rotary angle [deg]"),
+                                    ("time", a["tau"], "scan time (normalised, -0.5 .. 0.5)")):
+        fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+        for ax, comp, lab in ((axes[0], 0, "u (columns)"), (axes[1], 1, "v (rows)")):
+            ax.plot(xval, rb[comp * q:(comp + 1) * q], ".", ms=1.5, alpha=0.5, label="before (nominal model)")
+            ax.plot(xval, ra[comp * q:(comp + 1) * q], ".", ms=1.5, alpha=0.5, label="after (with the named terms)")
+            ax.set_ylabel(f"residual {lab} [px]")
+        axes[0].legend(markerscale=6, fontsize=8)
+        axes[1].set_xlabel(xlabel)
+        fig.suptitle(f"residual (observed - modelled) against {axis_name}")
+        fig.tight_layout()
+        name = f"residual_vs_{axis_name}.png"
+        fig.savefig(tmp / name, dpi=90)
+        plt.close(fig)
+        files.append(name)
+    # detector field: binned mean residual vectors
+    uv = np.asarray(a["uv"])
+    nb = 8
+    ci = np.clip((uv[:, 0] / detector.cols * nb).astype(int), 0, nb - 1)
+    ri = np.clip((uv[:, 1] / detector.rows * nb).astype(int), 0, nb - 1)
+    key = ri * nb + ci
+    fig, axes = plt.subplots(1, 2, figsize=(10, 5))
+    for ax, r, title in ((axes[0], rb, "before"), (axes[1], ra, "after")):
+        cnt = np.bincount(key, minlength=nb * nb)
+        mu = np.bincount(key, r[:q], nb * nb) / np.maximum(cnt, 1)
+        mv = np.bincount(key, r[q:], nb * nb) / np.maximum(cnt, 1)
+        yy, xx = np.divmod(np.arange(nb * nb), nb)
+        sel = cnt > 0
+        ax.quiver((xx[sel] + 0.5) * detector.cols / nb, (yy[sel] + 0.5) * detector.rows / nb, mu[sel], -mv[sel],
+                  angles="xy")
+        ax.set_xlim(0, detector.cols)
+        ax.set_ylim(detector.rows, 0)
+        ax.set_title(f"mean residual per detector cell, {title}")
+        ax.set_xlabel("column [px]")
+        ax.set_ylabel("row [px]")
+    fig.tight_layout()
+    fig.savefig(tmp / "residual_detector_field.png", dpi=90)
+    plt.close(fig)
+    files.append("residual_detector_field.png")
+    return files
+
+
+def write_report(out: dict, tmp: pathlib.Path, plots: list, recording) -> None:
+    fb, fa = out["fit_before"], out["fit_after"]
+    nf = out["noise_floor"]
+    lines = [f"# Discrepancy report: {recording}", "", f"**{out['verdict']}**", "",
+             f"Adequate (no significant structure left by the nominal model): **{out['adequate']}**", "",
+             "## Noise floor (from the data)", "",
+             f"{nf['method']}: independent {nf['independent_sd']['u']:.4g} / {nf['independent_sd']['v']:.4g} px "
+             f"(u / v), shared per projection {nf['shared_per_projection_sd']['u']:.3g} / "
+             f"{nf['shared_per_projection_sd']['v']:.3g} px; the detector stated a median sigma of "
+             f"{nf['stated_sigma_median_px']:.4g} px.", "",
+             "## Fit", "", "| | rms [px] | chi2/dof vs floor | held-out rms [px] |", "| --- | --- | --- | --- |",
+             f"| before (nominal) | {fb['rms']:.5g} | {fb['chi2_dof']:.4g} | {fb['held_out_rms']:.5g} |",
+             f"| after | {fa['rms']:.5g} | {fa['chi2_dof']:.4g} | {fa['held_out_rms']:.5g} |", "",
+             "## Findings", ""]
+    if not out["findings"]:
+        lines.append("None.")
+    for f in out["findings"]:
+        lines += [f"### {f['name']} (`{f['term']}`)", "", f"{f['mechanism']}.", "",
+                  f"Significance {f['significance_sigma']:.1f} sigma, delta BIC {f['delta_bic']:.1f}, held-out gain "
+                  f"{f['cv_gain']:.4g} (chi2 per residual); magnitude {f['magnitude']:.4g} {f['magnitude_unit']}.", "",
+                  "| parameter | value | u | unit |", "| --- | --- | --- | --- |"]
+        lines += [f"| {p['name']} | {p['value']:.5g} | {p['u']:.2g} | {p['unit']} |" for p in f["parameters"]]
+        if f["degenerate_with"]:
+            lines += ["", f"Explains the data as well as: {', '.join(f['degenerate_with'])}."]
+        if f["correlated_with_calibrated"]:
+            lines += ["", f"Correlated (|r| > 0.9) with the calibrated {', '.join(f['correlated_with_calibrated'])}."]
+        if f["separate_by"]:
+            lines += ["", "Separate them by: " + "; ".join(f["separate_by"]) + "."]
+        lines.append("")
+    lines += ["## Structure no catalogue term explains", ""]
+    lines += [f"- {u['axis']}: {u['significance_sigma']:.1f} sigma, {u['amplitude_rms_px']:.3g} px rms "
+              f"(absorbed by `{u['absorbed_by']}`)" for u in out["unexplained"]] or ["None."]
+    lines += ["", "## Detection limits of this recording (90 % power)", "", "| term | smallest detectable | reveal by |",
+              "| --- | --- | --- |"]
+    for k, v in out["detection_limits"].items():
+        lim = f"{v['limit']:.3g} {v['unit']}" if v.get("limit") is not None else f"not visible: {v['cannot_see']}"
+        lines.append(f"| {k} | {lim} | {v['reveal_by']} |")
+    lines += ["", "## Plots", ""] + [f"![{p}]({p})" for p in plots]
+    (tmp / "report.md").write_text("\n".join(lines) + "\n")
+
+
+def main(argv=None) -> int:
+    from ct_calib_nodes.core import ct_discrepancy  # noqa: PLC0415
+    from ct_calib_nodes.io import ct_files  # noqa: PLC0415
+    from ct_calib_nodes.io.results import write_json_atomic  # noqa: PLC0415
+    from ct_calib_nodes.offline import _find_file, solve_recording  # noqa: PLC0415
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    ap.add_argument("recording", help=".mcap file or rosbag2 directory")
+    ap.add_argument("--instrument", help="ct_instrument.yaml")
+    ap.add_argument("--reference-object", help="reference_object.yaml")
+    ap.add_argument("--out", help="output directory (default <recording>_discrepancy)")
+    ap.add_argument("--max-terms", type=int, default=4, help="most catalogue terms added")
+    ap.add_argument("--no-plots", action="store_true")
+    args = ap.parse_args(argv)
+    rec = pathlib.Path(args.recording)
+    if not rec.exists():
+        print(f"ct_discrepancy: no recording at {rec}", file=sys.stderr)
+        return 2
+    try:
+        inst_path, how_i = _find_file(args.instrument, rec, "ct_instrument.yaml", ct_files.default_instrument_path)
+        ref_path, how_r = _find_file(args.reference_object, rec, "reference_object.yaml",
+                                     ct_files.default_reference_object_path)
+        instrument = ct_files.load_instrument(inst_path)
+        ref, thermal_note = ct_files.reference_at_scan(ct_files.load_reference_object(ref_path), instrument)
+    except ct_files.CtFileError as exc:
+        print(f"ct_discrepancy: {exc}", file=sys.stderr)
+        return 2
+    say = lambda m: print(f"[discrepancy] {m}", flush=True)  # noqa: E731
+    say(f"instrument file {inst_path} ({how_i}); reference object {ref_path} ({how_r}); {thermal_note}")
+    t0 = time.perf_counter()
+    res = solve_recording(rec, instrument, ref, progress=say)
+    for p in res.problems[:20]:
+        say(f"problem: {p}")
+    if res.static is None or not np.all(np.isfinite(res.static.x)) or not res.acc.positions:
+        say("no static calibration from this recording: nothing written")
+        return 1
+    t1 = time.perf_counter()
+    say(f"nominal calibration: {res.static.outcome} ({t1 - t0:.1f} s); running the engine")
+    obs = res.acc.positions[0].observations()
+    out = ct_discrepancy.run(obs, res.static, instrument.detector, progress=say, max_terms=args.max_terms)
+    t2 = time.perf_counter()
+    out["recording"] = str(rec)
+    out["nominal_outcome"] = res.static.outcome
+    out["problems"] = res.problems
+    out["timing_s"] = {"replay_and_calibration": t1 - t0, "engine": t2 - t1}
+    out_dir = pathlib.Path(args.out) if args.out else rec.parent / f"{rec.stem}_discrepancy"
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix=".partial_", dir=out_dir))
+    try:
+        plots = [] if args.no_plots else _plots(out, tmp, instrument.detector)
+        arrays = out.pop("_arrays")
+        write_json_atomic(tmp / "discrepancy.json", out)
+        out["_arrays"] = arrays
+        write_report(out, tmp, plots, rec)
+        for item in sorted(tmp.iterdir()):
+            item.replace(out_dir / item.name)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    say(out["verdict"])
+    say(f"written: {out_dir / 'discrepancy.json'}, {out_dir / 'report.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,218 @@
+"""Rendered camera frames of the back-lit SMR* in its nest (true perspective, true distortion).
+
+Every pixel of a region of interest is ray-cast: the pixel is undistorted with the TRUE lens
+model into a viewing ray, and the ray is tested against the sphere (the silhouette is the cone
+of rays tangent to the sphere, so the dark region is an ellipse whose centre is not the image
+of the sphere centre off axis) and against the nest post (a cylinder below the sphere along the
+nest axis; it hides part of the disc rim, as the conical nest does in the paper's Fig. 7).
+Anti-aliasing uses the signed angular distance to each silhouette (box-filtered edge), then a
+Gaussian blur for the lens PSF and the defocus of the sphere's depth, vignetting, shot and read
+noise, and 8-bit output. Motion blur of frames taken mid-move is not modelled.
+
+A thin wire ending in a tip (< 50 um) can be added (`Wire`), drawn the same way.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .camera import CameraPose, Intrinsics
+from .cell import SMR_DIAMETER, Physics
+
+NEST_POST_RADIUS_FRACTION = 0.4    # post radius / sphere radius
+NEST_POST_LENGTH_M = 0.025
+_VIGNETTE_CACHE: dict = {}
+
+
+@dataclass(frozen=True)
+class Wire:
+    """A straight wire of `radius_m` ending in a hemispherical tip centred at `tip_stage`."""
+    tip_stage: np.ndarray
+    direction_stage: np.ndarray      # from the tip along the wire
+    radius_m: float = 20e-6
+    length_m: float = 0.02
+
+
+def _vignette(intr: Intrinsics, strength: float) -> np.ndarray:
+    key = (intr.width, intr.height, round(float(intr.K[0, 2]), 3), round(float(intr.K[1, 2]), 3), strength)
+    v = _VIGNETTE_CACHE.get(key)
+    if v is None:
+        if len(_VIGNETTE_CACHE) > 6:
+            _VIGNETTE_CACHE.clear()
+        yy, xx = np.mgrid[0:intr.height, 0:intr.width].astype(np.float32)
+        r2 = (xx - intr.K[0, 2]) ** 2 + (yy - intr.K[1, 2]) ** 2
+        r2max = max(intr.K[0, 2], intr.width - intr.K[0, 2]) ** 2 + max(intr.K[1, 2], intr.height - intr.K[1, 2]) ** 2
+        v = (1.0 - strength * r2 / r2max).astype(np.float32)
+        _VIGNETTE_CACHE[key] = v
+    return v
+
+
+def _roi(intr, pose, points, pad_px):
+    from .camera import project
+    uv = project(pose, intr, points)
+    x0 = int(np.floor(uv[:, 0].min() - pad_px))
+    x1 = int(np.ceil(uv[:, 0].max() + pad_px))
+    y0 = int(np.floor(uv[:, 1].min() - pad_px))
+    y1 = int(np.ceil(uv[:, 1].max() + pad_px))
+    x0, y0 = max(x0, 0), max(y0, 0)
+    x1, y1 = min(x1, intr.width), min(y1, intr.height)
+    return x0, y0, max(x1 - x0, 0), max(y1 - y0, 0)
+
+
+def defocus_sigma_px(physics: Physics, depth_m: float, focus_m: float) -> float:
+    """Gaussian sd (px) of the blur circle of a point at depth_m with focus at focus_m (thin lens)."""
+    f = physics.focal_m
+    diam = f * f / (physics.f_number * (focus_m - f)) * abs(depth_m - focus_m) / depth_m
+    return diam / physics.pixel_m / 2.5
+
+
+_TILE = 16
+
+
+def _edge_coverage(intr: Intrinsics, x0: int, y0: int, w: int, h: int, sd_fn) -> np.ndarray:
+    """Coverage (h, w) float32 of an opaque object whose signed pixel distance is sd_fn(xn, yn).
+
+    sd_fn takes 1-D normalised undistorted coordinates and returns the signed distance to the
+    silhouette in pixels (negative inside). It is evaluated exactly only in 16 px tiles near
+    the silhouette (found from the tile centres); other tiles are 0 or 1.
+    """
+    ty, tx = (h + _TILE - 1) // _TILE, (w + _TILE - 1) // _TILE
+    cx = x0 + _TILE * np.arange(tx) + (_TILE - 1) / 2
+    cy = y0 + _TILE * np.arange(ty) + (_TILE - 1) / 2
+    gx, gy = np.meshgrid(cx, cy)
+    n = intr.undistort(np.column_stack([gx.ravel(), gy.ravel()]))
+    sdc = sd_fn(n[:, 0], n[:, 1]).reshape(ty, tx)
+    full = np.repeat(np.repeat((sdc < 0).astype(np.float32), _TILE, 0), _TILE, 1)
+    edge = np.argwhere(np.abs(sdc) < _TILE * 0.75 + 2)
+    if edge.size:
+        oy, ox = np.mgrid[0:_TILE, 0:_TILE]
+        px = (x0 + edge[:, 1, None, None] * _TILE + ox[None]).ravel().astype(np.float64)
+        py = (y0 + edge[:, 0, None, None] * _TILE + oy[None]).ravel().astype(np.float64)
+        nn = intr.undistort(np.column_stack([px, py]))
+        cov = np.clip(0.5 - sd_fn(nn[:, 0], nn[:, 1]), 0.0, 1.0).astype(np.float32)
+        full[(py - y0).astype(int), (px - x0).astype(int)] = cov
+    return full[:h, :w]
+
+
+_BASE_CACHE: dict = {}
+
+
+def _base(intr: Intrinsics, physics: Physics):
+    """(clean background + 0.5, noise sd) for a camera and physics, cached."""
+    key = (intr.width, intr.height, float(intr.K[0, 2]), float(intr.K[1, 2]), physics.vignetting,
+           physics.bright_level, physics.full_well_dn, physics.read_noise_dn)
+    v = _BASE_CACHE.get(key)
+    if v is None:
+        if len(_BASE_CACHE) > 6:
+            _BASE_CACHE.clear()
+        clean = _vignette(intr, physics.vignetting) * np.float32(physics.bright_level)
+        sd = np.sqrt(clean / np.float32(physics.full_well_dn) + np.float32(physics.read_noise_dn ** 2))
+        v = (clean, clean + np.float32(0.5), sd)
+        _BASE_CACHE[key] = v
+    return v
+
+
+def render_frame(pose: CameraPose, intr: Intrinsics, physics: Physics, rng, *,
+                 sphere_stage=None, nest_axis_stage=(0.0, 0.0, -1.0), wire: Wire | None = None,
+                 focus_m: float | None = None, sphere_diameter_m: float = SMR_DIAMETER) -> np.ndarray:
+    """One mono8 frame (height, width) uint8 of the scene seen from `pose` with TRUE `intr`.
+
+    sphere_stage : (3,) or None. The SMR centre in the stage frame (None: no sphere or nest).
+    focus_m : focus distance from the perspective centre (default: the working distance).
+    """
+    R_sc, C = pose.R_stage_camera, pose.p_stage_centre
+    focus = physics.working_distance_m if focus_m is None else focus_m
+    f_px = intr.f_px
+    cover = []     # (x0, y0, coverage array, blur sd)
+
+    def line_sd(t_cam, a_cam, radius, length, clip_u):
+        def fn(xn, yn):
+            inv = 1.0 / np.sqrt(xn * xn + yn * yn + 1.0)
+            dx, dy, dz = xn * inv, yn * inv, inv
+            b = dx * a_cam[0] + dy * a_cam[1] + dz * a_cam[2]
+            dd = dx * t_cam[0] + dy * t_cam[1] + dz * t_cam[2]
+            ea = t_cam @ a_cam
+            den = np.maximum(1.0 - b * b, 1e-12)
+            u = (b * dd - ea) / den
+            if clip_u:
+                u = np.clip(u, 0.0, length)
+            qx, qy, qz = t_cam[0] + u * a_cam[0], t_cam[1] + u * a_cam[1], t_cam[2] + u * a_cam[2]
+            tr = qx * dx + qy * dy + qz * dz
+            dist = np.sqrt((tr * dx - qx) ** 2 + (tr * dy - qy) ** 2 + (tr * dz - qz) ** 2)
+            scale = f_px / np.maximum(tr, 1e-6)
+            sd = (dist - radius) * scale
+            if not clip_u:   # finite cylinder: flat ends
+                sd = np.maximum(sd, np.maximum(-u, u - length) * scale)
+            return sd
+        return fn
+
+    if sphere_stage is not None:
+        s = np.asarray(sphere_stage, float)
+        Rs = sphere_diameter_m / 2
+        axis = np.asarray(nest_axis_stage, float)
+        axis = axis / np.linalg.norm(axis)
+        r_post = NEST_POST_RADIUS_FRACTION * Rs
+        top = s + axis * np.sqrt(Rs * Rs - r_post * r_post)
+        bottom = s + axis * NEST_POST_LENGTH_M
+        c_cam = (s - C) @ R_sc
+        if c_cam[2] <= Rs:
+            raise ValueError("sphere behind or around the camera")
+        depth = float(np.linalg.norm(c_cam))
+        blur = float(np.hypot(physics.psf_sigma_px, defocus_sigma_px(physics, depth, focus)))
+        cu = c_cam / depth
+        alpha = np.arcsin(Rs / depth)
+
+        def sphere_sd(xn, yn):
+            inv = 1.0 / np.sqrt(xn * xn + yn * yn + 1.0)
+            cx = (yn * cu[2] - cu[1]) * inv
+            cy = (cu[0] - xn * cu[2]) * inv
+            cz = (xn * cu[1] - yn * cu[0]) * inv
+            ang = np.arcsin(np.minimum(np.sqrt(cx * cx + cy * cy + cz * cz), 1.0))
+            front = (xn * cu[0] + yn * cu[1] + cu[2]) > 0
+            return np.where(front, (ang - alpha) * f_px, 1e3)
+
+        corners = np.array([[i, k, m] for i in (-1, 1) for k in (-1, 1) for m in (-1, 1)], float)
+        x0, y0, w, h = _roi(intr, pose, s + 1.05 * Rs * corners, 4 * blur + 4)
+        if w > 0 and h > 0:
+            cover.append((x0, y0, _edge_coverage(intr, x0, y0, w, h, sphere_sd), blur))
+        ends = [p + r_post * 1.5 * np.array(d) for p in (top, bottom) for d in [(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0)]]
+        x0, y0, w, h = _roi(intr, pose, np.array(ends), 4 * blur + 4)
+        if w > 0 and h > 0:
+            fn = line_sd((top - C) @ R_sc, axis @ R_sc, r_post, float(np.linalg.norm(bottom - top)), False)
+            cover.append((x0, y0, _edge_coverage(intr, x0, y0, w, h, fn), blur))
+    if wire is not None:
+        tip = np.asarray(wire.tip_stage, float)
+        wd = np.asarray(wire.direction_stage, float)
+        wd = wd / np.linalg.norm(wd)
+        end = tip + wd * wire.length_m
+        depth = float(np.linalg.norm((tip - C) @ R_sc))
+        blur = float(np.hypot(physics.psf_sigma_px, defocus_sigma_px(physics, depth, focus)))
+        x0, y0, w, h = _roi(intr, pose, np.array([tip, end]), 4 * blur + 6)
+        if w > 0 and h > 0:
+            fn = line_sd((tip - C) @ R_sc, wd @ R_sc, wire.radius_m, wire.length_m, True)
+            cover.append((x0, y0, _edge_coverage(intr, x0, y0, w, h, fn), blur))
+    clean, clean_half, sd = _base(intr, physics)
+    img = rng.standard_normal(clean.shape, dtype=np.float32)
+    img *= sd
+    img += clean_half
+    if cover:
+        # union of the opaque objects (max of coverages) in one box, one blur, own noise level
+        bx0 = min(c[0] for c in cover)
+        by0 = min(c[1] for c in cover)
+        bx1 = max(c[0] + c[2].shape[1] for c in cover)
+        by1 = max(c[1] + c[2].shape[0] for c in cover)
+        tot = np.zeros((by1 - by0, bx1 - bx0), np.float32)
+        for x0, y0, cov, _ in cover:
+            h, w = cov.shape
+            sub = tot[y0 - by0:y0 - by0 + h, x0 - bx0:x0 - bx0 + w]
+            np.maximum(sub, cov, out=sub)
+        blur = max(c[3] for c in cover)
+        cb = cv2.GaussianBlur(tot, (0, 0), blur, borderType=cv2.BORDER_REPLICATE)
+        contrast = np.float32(1.0 - physics.dark_level / physics.bright_level)
+        roi_clean = clean[by0:by1, bx0:bx1] * (1.0 - contrast * cb)
+        roi_sd = np.sqrt(roi_clean / np.float32(physics.full_well_dn) + np.float32(physics.read_noise_dn ** 2))
+        img[by0:by1, bx0:bx1] = roi_clean + 0.5 + roi_sd * rng.standard_normal(roi_clean.shape, dtype=np.float32)
+    np.clip(img, 0, 255.49, out=img)
+    return img.astype(np.uint8)

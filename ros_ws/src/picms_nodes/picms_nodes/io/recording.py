@@ -1,0 +1,72 @@
+"""A PiCMS recording (one .mcap or a rosbag2 directory) read into the core's `Recording`.
+
+Two passes, so that images need not be held in memory: pass 1 reads CameraInfo, joint_states
+and tracker readings (messages may be logged in any order: pairing is by header stamp); pass 2
+streams the images, which the pipeline detects only when they fall in a settled period.
+Unreadable or non-conforming messages are counted and named, never fatal by themselves.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ct_calib_nodes.io.mcap_io import ReadReport, iter_recording
+
+from ..core.campaign import Recording
+from .convert import MessageError, image_array, intrinsics_from_camera_info, joint_positions, point, stamp_ns
+
+IMAGE_RE = re.compile(r"^/picms/(camera_\d+)/image_raw$")
+INFO_RE = re.compile(r"^/picms/(camera_\d+)/camera_info$")
+SMR_PREFIX = "/picms/tracker/smr/"
+JOINTS = "/picms/stage/joint_states"
+
+
+@dataclass
+class RecordingReport:
+    read: ReadReport = field(default_factory=ReadReport)
+    problems: list = field(default_factory=list)     # human-readable: what could not be used
+    counts: dict = field(default_factory=dict)
+
+
+def read_recording(path, cell: dict) -> tuple[Recording, RecordingReport]:
+    """Pass 1: everything but the images. Returns the Recording (frames empty) and a report."""
+    rep = RecordingReport()
+    rec = Recording(cell=cell)
+    js_t, js_q, infos = [], [], {}
+    for m in iter_recording(path, report=rep.read):
+        t = m.topic
+        try:
+            if t == JOINTS:
+                js_q.append(joint_positions(m.msg))
+                js_t.append(stamp_ns(m.msg.header.stamp))
+            elif t.startswith(SMR_PREFIX):
+                rec.tracker.append((stamp_ns(m.msg.header.stamp), t[len(SMR_PREFIX):], point(m.msg)))
+            elif INFO_RE.match(t):
+                cam = INFO_RE.match(t).group(1)
+                if cam not in infos:
+                    infos[cam] = intrinsics_from_camera_info(m.msg)
+            else:
+                continue
+            rep.counts[t if not t.startswith(SMR_PREFIX) else "tracker"] = rep.counts.get(t if not t.startswith(SMR_PREFIX) else "tracker", 0) + 1
+        except MessageError as exc:
+            if len(rep.problems) < 50:
+                rep.problems.append(f"{t} at {m.log_time_ns} ns: {exc}")
+    rec.camera_info = infos
+    rec.joint_stamps_ns = np.array(js_t, dtype=np.int64)
+    rec.joint_positions = np.array(js_q, dtype=np.float64).reshape(-1, 3)
+    return rec, rep
+
+
+def iter_frames(path, rep: RecordingReport):
+    """Pass 2: (stamp_ns, camera, image) of every readable image; problems go to rep."""
+    for m in iter_recording(path, report=ReadReport()):
+        mm = IMAGE_RE.match(m.topic)
+        if not mm:
+            continue
+        cam = mm.group(1)
+        try:
+            yield stamp_ns(m.msg.header.stamp), cam, image_array(m.msg)
+        except MessageError as exc:
+            rep.problems.append(f"{m.topic} at {m.log_time_ns} ns: {exc}")

@@ -1,0 +1,270 @@
+"""Pixel Probe calibration node: drives the stage through the pattern, calibrates, publishes.
+
+Service /picms/run_calibration (metro_msgs/RunPicmsCalibration), or auto_start:=true. The node
+commands the stage (only through /picms/stage/command) to the reference and then +-X, +-Y, +-Z
+(Appendix A), waits at each target until joint_states show it settled, dwells while frames and
+tracker readings arrive, then calibrates with the same core as the offline tool
+(core.pipeline). Frames are detected as they arrive (bad frames are logged and skipped); only
+those inside settled periods are used. The result is published latched on /picms/calibration
+(metro_msgs/PicmsCalibration) and, on success only, written atomically to output_file.
+"""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from geometry_msgs.msg import PointStamped
+from metro_msgs.msg import PicmsCalibration
+from metro_msgs.srv import RunPicmsCalibration
+from sensor_msgs.msg import CameraInfo, Image, JointState
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from ct_calib_nodes.nodes.runner import QOS_LATCHED, declare_parameters
+
+from ..core.calibrate import CalibrationError, settled_windows
+from ..core.campaign import Recording, appendix_a_pattern
+from ..core.detect import DetectionError, detect_disc
+from ..core.pipeline import calibrate_detections
+from ..io.calibration_msg import calibration_msg, failure_msg
+from ..io.convert import MessageError, image_array, intrinsics_from_camera_info, joint_positions, point, stamp_ns
+from ..io.files import read_cell, write_calibration
+from .common import CALIBRATION_TOPIC, COMMAND_TOPIC, IMAGE_TOPIC, INFO_TOPIC, JOINTS_TOPIC, SERVICE
+
+PARAMS = {
+    "cell_file": ("", "picms_cell.yaml; empty = the package's config/picms_cell.yaml [path]"),
+    "output_file": ("picms_calibration.yaml", "where a successful calibration is written [path]"),
+    "cameras": (["camera_1", "camera_2", "camera_3"], "cameras of the Pixel Probe [-]"),
+    "step_xy_m": (0.006, "stage excursion along +-x and +-y from the reference [m]"),
+    "step_z_m": (0.004, "stage excursion along +-z [m]"),
+    "reference": ([0.0, 0.0, 0.0], "stage reading at which the SMR* is at X* [m]"),
+    "dwell_s": (3.0, "time to collect frames and tracker readings once settled [s]"),
+    "frames_per_station": (2, "settled frames per camera to collect at each station [count]"),
+    "settle_timeout_s": (30.0, "give up when the stage has not settled this long after a command [s]"),
+    "image_reliable": (True, "subscribe images reliably (5 MP frames over best-effort UDP are mostly lost); "
+                             "false to match a best-effort camera driver [-]"),
+    "info_timeout_s": (20.0, "wait this long for joint_states and every CameraInfo before giving up [s]"),
+    "auto_start": (False, "run the calibration once at start-up [-]"),
+    "exit_when_done": (False, "end the process after an auto_start run [-]"),
+}
+
+
+def _default_cell():
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        import pathlib
+        return pathlib.Path(get_package_share_directory("picms_nodes")) / "config" / "picms_cell.yaml"
+    except Exception:   # noqa: BLE001 - running from the source tree
+        import pathlib
+        return pathlib.Path(__file__).resolve().parents[2] / "config" / "picms_cell.yaml"
+
+
+class PicmsCalibrationNode(Node):
+    def __init__(self):
+        super().__init__("picms_calibration")
+        self.p = p = declare_parameters(self, PARAMS)
+        self.cell = read_cell(p["cell_file"] or _default_cell())
+        self.lock = threading.Lock()
+        self.busy = threading.Lock()
+        self.exit_code = 0
+        self.js_t, self.js_q, self.tracker, self.dets, self.info = [], [], [], [], {}
+        self.skipped = 0
+        sensors = MutuallyExclusiveCallbackGroup()
+        images = MutuallyExclusiveCallbackGroup()
+        self.svc_group = ReentrantCallbackGroup()
+        self.create_subscription(JointState, JOINTS_TOPIC, self.on_joints, qos_profile_sensor_data,
+                                 callback_group=sensors)
+        tr = self.cell["tracker"]
+        for name in list(tr["constellation"]) + [tr["probe_smr"]]:
+            self.create_subscription(PointStamped, f"/picms/tracker/smr/{name}",
+                                     lambda m, n=name: self.on_smr(n, m), qos_profile_sensor_data,
+                                     callback_group=sensors)
+        img_qos = QoSProfile(depth=4, reliability=ReliabilityPolicy.RELIABLE) if p["image_reliable"] \
+            else qos_profile_sensor_data
+        for c in p["cameras"]:
+            self.create_subscription(CameraInfo, INFO_TOPIC.format(c), lambda m, c=c: self.on_info(c, m),
+                                     QOS_LATCHED, callback_group=sensors)
+            self.create_subscription(Image, IMAGE_TOPIC.format(c), lambda m, c=c: self.on_image(c, m),
+                                     img_qos, callback_group=images)
+        self.cmd = self.create_publisher(JointTrajectory, COMMAND_TOPIC, 10)
+        self.pub = self.create_publisher(PicmsCalibration, CALIBRATION_TOPIC, QOS_LATCHED)
+        self.create_service(RunPicmsCalibration, SERVICE, self.on_service, callback_group=self.svc_group)
+        if p["auto_start"]:
+            threading.Thread(target=self._auto, daemon=True).start()
+
+    # ---------------------------------------------------------------- intake
+    def on_joints(self, m):
+        try:
+            q = joint_positions(m)
+        except MessageError as exc:
+            self.get_logger().warning(f"skipped joint_states: {exc}")
+            return
+        with self.lock:
+            self.js_t.append(stamp_ns(m.header.stamp))
+            self.js_q.append(q)
+
+    def on_smr(self, name, m):
+        try:
+            p = point(m)
+        except MessageError as exc:
+            self.get_logger().warning(f"skipped tracker reading of {name}: {exc}")
+            return
+        with self.lock:
+            self.tracker.append((stamp_ns(m.header.stamp), name, p))
+
+    def on_info(self, cam, m):
+        try:
+            intr = intrinsics_from_camera_info(m)
+        except MessageError as exc:
+            self.get_logger().warning(f"skipped CameraInfo of {cam}: {exc}")
+            return
+        with self.lock:
+            self.info[cam] = intr
+
+    def on_image(self, cam, m):
+        if not self.busy.locked():
+            return                              # not calibrating: frames are not needed
+        intr = self.info.get(cam)
+        if intr is None:
+            self.skipped += 1
+            self.get_logger().warning(f"frame from {cam} skipped: no CameraInfo received yet", throttle_duration_sec=5.0)
+            return
+        try:
+            d = detect_disc(image_array(m), intr)
+        except (MessageError, DetectionError) as exc:
+            self.skipped += 1
+            self.get_logger().warning(f"frame from {cam} skipped: {exc}", throttle_duration_sec=2.0)
+            return
+        with self.lock:
+            self.dets.append((stamp_ns(m.header.stamp), cam, d))
+
+    # ---------------------------------------------------------------- sequence
+    def _command(self, q):
+        m = JointTrajectory()
+        m.joint_names = ["x", "y", "z"]
+        pt = JointTrajectoryPoint()
+        pt.positions = [float(v) for v in q]
+        m.points = [pt]
+        self.cmd.publish(m)
+
+    def _wait_settled(self, target, t_cmd_ns):
+        res = float(self.cell["stage"]["resolution"])
+        deadline = time.monotonic() + float(self.p["settle_timeout_s"])
+        dwell_ns = int(float(self.p["dwell_s"]) * 1e9)
+        while time.monotonic() < deadline:
+            time.sleep(0.1)
+            with self.lock:
+                t = np.array(self.js_t[-2000:], dtype=np.int64)
+                q = np.array(self.js_q[-2000:]).reshape(-1, 3)
+            if t.size < 3:
+                continue
+            keep = t > t_cmd_ns
+            w = settled_windows(t[keep], q[keep]) if keep.sum() > 3 else []
+            if w and w[-1].end_ns == t[keep].max() and np.all(np.abs(w[-1].q - target) <= res) \
+                    and w[-1].end_ns - w[-1].start_ns >= dwell_ns:
+                with self.lock:
+                    n = {c: sum(1 for st, cc, _ in self.dets if cc == c and w[-1].start_ns <= st <= w[-1].end_ns)
+                         for c in self.p["cameras"]}
+                if min(n.values()) >= int(self.p["frames_per_station"]):
+                    return True
+        return False
+
+    def run(self, write_file=True):
+        """The whole calibration; returns (success, message, PicmsCalibration)."""
+        if not self.busy.acquire(blocking=False):
+            return False, "a calibration is already running", None
+        try:
+            with self.lock:
+                self.js_t, self.js_q, self.tracker, self.dets = [], [], [], []
+            cams = list(self.p["cameras"])
+            t_wait = time.monotonic() + float(self.p["info_timeout_s"])
+            while time.monotonic() < t_wait and (not self.js_t or any(c not in self.info for c in cams)):
+                time.sleep(0.1)
+            missing = [c for c in cams if c not in self.info]
+            if not self.js_t:
+                raise CalibrationError("no /picms/stage/joint_states: is the stage running?")
+            if missing:
+                raise CalibrationError(f"CameraInfo missing for {missing}: intrinsic calibration K, D required")
+            ref = np.array(self.p["reference"], float)
+            for k, dq in enumerate(appendix_a_pattern(float(self.p["step_xy_m"]), float(self.p["step_z_m"]))):
+                target = ref + dq
+                t_cmd = self.get_clock().now().nanoseconds
+                self._command(target)
+                self.get_logger().info(f"station {k}: stage to {np.round(target * 1e3, 3).tolist()} mm")
+                if not self._wait_settled(target, t_cmd):
+                    raise CalibrationError(f"the stage never settled at {np.round(target * 1e3, 3).tolist()} mm "
+                                           f"with {self.p['frames_per_station']} usable frames per camera "
+                                           f"within {self.p['settle_timeout_s']} s (see the skipped-frame warnings)")
+            self._command(ref)
+            with self.lock:
+                rec = Recording(cell=self.cell, camera_info=dict(self.info),
+                                joint_stamps_ns=np.array(self.js_t, dtype=np.int64),
+                                joint_positions=np.array(self.js_q).reshape(-1, 3), tracker=list(self.tracker))
+                dets = list(self.dets)
+            res = calibrate_detections(rec, dets)
+            path = ""
+            if write_file and self.p["output_file"]:
+                path = str(write_calibration(res, self.p["output_file"]))
+            msg = calibration_msg(res, self.get_clock().now().to_msg(), path)
+            self.pub.publish(msg)
+            self.get_logger().info(f"{res.message}; X* pixels " +
+                                   ", ".join(f"{c}: {np.round(v, 3).tolist()}" for c, v in res.pixels.items()) +
+                                   (f"; written to {path}" if path else ""))
+            return True, res.message, msg
+        except (CalibrationError, ValueError, OSError) as exc:
+            self.get_logger().error(f"calibration failed: {exc} (no file written)")
+            msg = failure_msg(str(exc), self.get_clock().now().to_msg())
+            self.pub.publish(msg)
+            return False, str(exc), msg
+        finally:
+            self.busy.release()
+
+    def on_service(self, req, resp):
+        ok, text, msg = self.run(bool(req.write_file))
+        resp.success, resp.message = ok, text
+        if msg is not None:
+            resp.calibration = msg
+        return resp
+
+    def _auto(self):
+        ok, _, _ = self.run(True)
+        self.exit_code = 0 if ok else 1
+        if self.p["exit_when_done"]:
+            import rclpy
+            rclpy.try_shutdown()
+
+
+def main(args=None):
+    import sys
+
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    rclpy.init(args=args)
+    node = None
+    try:
+        try:
+            node = PicmsCalibrationNode()
+        except ValueError as exc:
+            print(f"[picms_calibration] configuration error: {exc}", file=sys.stderr, flush=True)
+            return 2
+        ex = MultiThreadedExecutor(num_threads=3)
+        ex.add_node(node)
+        ex.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        code = int(getattr(node, "exit_code", 0) or 0) if node is not None else 2
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    import sys
+    sys.exit(main())

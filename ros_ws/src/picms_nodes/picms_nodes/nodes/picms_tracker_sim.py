@@ -1,0 +1,86 @@
+"""Simulated laser tracker (INTERFACES.md, PiCMS).
+
+Reads one SMR at a time, round-robin over the constellation and the SMR* (when present),
+each reading with its own stamp, on /picms/tracker/smr/<name> (geometry_msgs/PointStamped,
+frame_id tracker); and the 6-DOF probe pose on /picms/tracker/probe_pose. The probe body's
+position comes from the latest /picms/stage/joint_states. Noise: u = (15 um + 6 um/m L) / 2 per
+axis; hidden tracker_scale_ppm scales all lengths about the tracker origin.
+"""
+from __future__ import annotations
+
+import numpy as np
+from geometry_msgs.msg import PointStamped, PoseStamped
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import JointState
+
+from ct_calib_nodes.nodes.runner import QOS_RELIABLE_STREAM, declare_parameters, run_node
+
+from ..core.cell import CONSTELLATION
+from ..core.instruments import probe_pose_reading, smr_position_stage, tracker_reading
+from ..io.convert import MessageError, joint_positions
+from .common import CELL_PARAMS, JOINTS_TOPIC, POSE_TOPIC, SMR_TOPIC, truth_from_params
+
+PARAMS = {
+    **CELL_PARAMS,
+    "rate_hz": (60.0, "readings per second over all targets (round-robin) [Hz]"),
+    "smr_star_present": (True, "the SMR* is in its nest at X* and is read too [-]"),
+    "constellation": (list(CONSTELLATION), "SMRs on the probe body that the tracker reads [-]"),
+    "pose_every": (10, "publish a 6-DOF probe pose after this many SMR readings [count]"),
+    "noise_seed": (2, "seed of the reading noise [-]"),
+}
+
+
+class PicmsTrackerSim(Node):
+    def __init__(self):
+        super().__init__("picms_tracker_sim")
+        self.p = p = declare_parameters(self, PARAMS)
+        self.truth = truth_from_params(p)
+        self.names = [n for n in p["constellation"] if n]
+        unknown = [n for n in self.names if n not in self.truth.constellation_stage]
+        if unknown:
+            raise ValueError(f"unknown constellation SMRs {unknown}")
+        if p["smr_star_present"]:
+            self.names.append("smr_star")
+        self.rng = np.random.default_rng(int(p["noise_seed"]))
+        self.pubs = {n: self.create_publisher(PointStamped, SMR_TOPIC.format(n), QOS_RELIABLE_STREAM) for n in self.names}
+        self.pose_pub = self.create_publisher(PoseStamped, POSE_TOPIC, QOS_RELIABLE_STREAM)
+        self.q = None
+        self.k = 0
+        self.create_subscription(JointState, JOINTS_TOPIC, self.on_joints, qos_profile_sensor_data)
+        self.create_timer(1.0 / float(p["rate_hz"]), self.tick)
+
+    def on_joints(self, msg):
+        try:
+            self.q = joint_positions(msg)
+        except MessageError as exc:
+            self.get_logger().warning(f"ignored joint_states: {exc}")
+
+    def tick(self):
+        if self.q is None or not self.names:
+            return
+        name = self.names[self.k % len(self.names)]
+        self.k += 1
+        p = tracker_reading(self.truth, smr_position_stage(self.truth, name, self.q), self.rng)
+        m = PointStamped()
+        m.header.stamp = self.get_clock().now().to_msg()
+        m.header.frame_id = "tracker"
+        m.point.x, m.point.y, m.point.z = (float(v) for v in p)
+        self.pubs[name].publish(m)
+        if self.k % int(self.p["pose_every"]) == 0:
+            from scipy.spatial.transform import Rotation
+            R, pp = probe_pose_reading(self.truth, self.q, self.rng)
+            ps = PoseStamped()
+            ps.header = m.header
+            ps.pose.position.x, ps.pose.position.y, ps.pose.position.z = (float(v) for v in pp)
+            x, y, z, w = Rotation.from_matrix(R).as_quat()
+            ps.pose.orientation.x, ps.pose.orientation.y, ps.pose.orientation.z, ps.pose.orientation.w = x, y, z, w
+            self.pose_pub.publish(ps)
+
+
+def main(args=None):
+    return run_node(PicmsTrackerSim, args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,171 @@
+"""Rendered CT recordings with one concealed effect, shared by the discrepancy tests and the validation benchmark.
+
+Each campaign: a random misaligned instrument (rendered_mc.draw_instrument), random renderer physics (blur,
+counts, support tube), helix49, ``n_views`` projections over one turn at ``frame_dt_s`` per frame, frames
+through the same detection + identity + static solve as the offline tool; the effect is a render_effects /
+RenderSettings switch the solver and the engine are never told about.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+
+from ct_calib_nodes.core import ct_discrepancy, render_effects as fx
+from ct_calib_nodes.core.ct_pipeline import CampaignAccumulator, FrameProcessor
+from ct_calib_nodes.core.detect import FrameError
+from ct_calib_nodes.core.geometry import DetectorSpec
+from ct_calib_nodes.core.phantom import helix49
+from ct_calib_nodes.core.render import RenderSettings, render_projection
+from ct_calib_nodes.core.static_solver import solve_static
+
+DEG = np.pi / 180.0
+ARCSEC = DEG / 3600.0
+SDD = 1.04821
+DET = DetectorSpec(1024, 1024, 0.0004)
+STAMP0_NS = 1_700_000_000_000_000_000
+
+
+def draw_instrument(rng, srd_range=(0.30, 0.45)):
+    srd = rng.uniform(*srd_range)
+    z_r = srd + rng.uniform(-2e-3, 2e-3)
+    w = np.array([
+        z_r, rng.uniform(-3e-3, 3e-3), rng.uniform(-3e-3, 3e-3), SDD + rng.uniform(-3e-3, 3e-3),
+        rng.uniform(-0.6, 0.6) * DEG, rng.uniform(-0.6, 0.6) * DEG, rng.uniform(-0.6, 0.6) * DEG,
+        rng.uniform(-1e-3, 1e-3), rng.uniform(-1e-3, 1e-3), z_r + rng.uniform(-1e-3, 1e-3),
+        rng.uniform(-0.5, 0.5) * DEG, rng.uniform(0.0, 2 * np.pi), rng.uniform(-0.5, 0.5) * DEG])
+    return w, srd
+
+
+def effect_settings(name: str, scale: float, duration_s: float, rng) -> tuple:
+    """(RenderSettings kwargs, true term id, true magnitude in the catalogue's display unit)."""
+    ph = rng.uniform(0, 2 * np.pi)
+    c, s = np.cos(ph), np.sin(ph)
+    t_ref = 0.0                                        # time 0 = mid-scan: the calibrated geometry's instant
+    if name == "clean":
+        return {}, None, 0.0
+    if name == "focal_spot_drift":                     # 30 um over the scan (issue 11)
+        d = 30e-6 * scale
+        return {"focal_spot_drift_m_per_s": (d * c / duration_s, d * s / duration_s, 0.0)}, name, d * 1e6
+    if name == "detector_bow":                         # 0.5 px at the corner: sag 0.72 mm at the corner
+        sag = 0.72e-3 * scale
+        return {"effects": (fx.DetectorBow(sag_x_m=sag, sag_y_m=0.0),)}, name, sag * 1e3
+    if name == "encoder_eccentricity":                 # 10 arcsec
+        a = 10 * ARCSEC * scale
+        return {"encoder_eccentricity_rad": a, "encoder_phase_rad": ph}, name, 10 * scale
+    if name == "encoder_second_harmonic":              # 6 arcsec twice per turn
+        a = 6 * ARCSEC * scale
+        return {"effects": (fx.EncoderHarmonic(2, a, ph),)}, name, 6 * scale
+    if name == "rotary_radial_runout":                 # 3 um
+        e = 3e-6 * scale
+        return {"effects": (fx.RotaryRunout(h_cos_m=e * c, h_sin_m=e * s),)}, name, 3 * scale
+    if name == "rotary_tilt_error":                    # 15 arcsec wobble about the across-beam axis
+        a = 15 * ARCSEC * scale
+        return {"effects": (fx.RotaryTiltError(h_cos_rad=a * c, h_sin_rad=a * s),)}, name, 15 * scale
+    if name == "stage_drift":                          # 8 um over the scan
+        d = 8e-6 * scale
+        return {"effects": (fx.StageDrift((d * c / duration_s, d * s / duration_s, 0.0), t_ref),)}, name, d * 1e6
+    if name == "object_thermal_expansion":             # 40 ppm over the scan (steel, +3.5 K)
+        e = 40e-6 * scale
+        return {"effects": (fx.ObjectExpansion(e / duration_s, t_ref),)}, name, e * 1e6
+    if name == "detector_distortion":                  # 0.4 px at the corner
+        r = np.hypot(0.2048, 0.2048)
+        k1 = 0.4 * DET.pixel_pitch_m / r ** 3 * scale
+        return {"detector_distortion_k1_per_m2": k1}, name, k1
+    raise ValueError(name)
+
+
+EFFECTS = ("focal_spot_drift", "detector_bow", "encoder_eccentricity", "encoder_second_harmonic",
+           "rotary_radial_runout", "rotary_tilt_error", "stage_drift", "object_thermal_expansion",
+           "detector_distortion")
+
+
+def render_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_views: int = 72,
+                    frame_dt_s: float = 1.0):
+    """Returns (obs, truth dict) for the first (only) stage position."""
+    rng = np.random.default_rng(seed)
+    w, srd = draw_instrument(rng)
+    phys = {"blur_sigma_px": float(rng.uniform(0.4, 1.0)), "flat_field_counts": float(rng.uniform(2e4, 6e4)),
+            "tube": bool(rng.random() < 0.5)}
+    duration = (n_views - 1) * frame_dt_s
+    kw, term, mag = effect_settings(effect, scale, duration, rng)
+    ref = helix49()
+    obj = dataclasses.replace(ref, tube=ref.tube if phys["tube"] else None)
+    settings = RenderSettings(flat_field_counts=phys["flat_field_counts"], blur_sigma_px=phys["blur_sigma_px"], **kw)
+    proc = FrameProcessor(ref, DET, SDD, phys["flat_field_counts"])
+    acc = CampaignAccumulator()
+
+    def take(results):
+        for fr in results:
+            ids, uv, sig, minor = fr.accepted()
+            idx = np.searchsorted(ref.ids, ids) if len(ids) else np.zeros(0, np.int64)
+            acc.add_frame(fr.stamp_ns, fr.alpha_rad, fr.srd_reported_m, idx, uv, sig, 0, minor)
+
+    for j, a in enumerate(np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)):
+        t = j * frame_dt_s - duration / 2               # renderer time 0 at mid-scan (see effect_settings)
+        frame = render_projection(w, np.zeros(6), a, obj, DET, settings, rng, time_s=t)
+        try:
+            take(proc.push(STAMP0_NS + int(round(t * 1e9)), frame.image, "mono16", a, srd))
+        except FrameError:
+            continue
+    take(proc.flush())
+    obs = acc.positions[0].observations()
+    return obs, {"w": w, "srd": srd, "sdd": SDD, "effect": effect, "term": term, "magnitude": mag,
+                 "physics": phys, "ref": ref}
+
+
+def analyse_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_views: int = 72, frame_dt_s: float = 1.0):
+    t0 = time.perf_counter()
+    obs, truth = render_campaign(seed, effect, scale, n_views, frame_dt_s)
+    t1 = time.perf_counter()
+    st = solve_static(obs, truth["ref"].centres_of_m, DET, truth["srd"], truth["sdd"])
+    t2 = time.perf_counter()
+    out = ct_discrepancy.run(obs, st, DET)
+    t3 = time.perf_counter()
+    out["_timing"] = {"render_detect_s": t1 - t0, "static_s": t2 - t1, "engine_s": t3 - t2}
+    out["_static"] = st
+    return out, truth
+
+
+def truth_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_views: int = 72, frame_dt_s: float = 1.0):
+    """Feature-level recording: the renderer's exact truth (render.frame_truth, hidden physics applied, no image)
+    plus detection-like noise of a random size, a random per-projection shared shift and a misstated sigma.
+
+    Fast (milliseconds per view); the image-level path is :func:`render_campaign`. Returns (obs, truth).
+    """
+    from ct_calib_nodes.core.observations import CentreObservations  # noqa: PLC0415
+    from ct_calib_nodes.core.render import frame_truth  # noqa: PLC0415
+
+    rng = np.random.default_rng(seed)
+    w, srd = draw_instrument(rng)
+    duration = (n_views - 1) * frame_dt_s
+    kw, term, mag = effect_settings(effect, scale, duration, rng)
+    sigma = float(rng.uniform(0.005, 0.03))
+    tau = float(rng.choice([0.0, 0.5]) * sigma)
+    stated = sigma * float(rng.uniform(0.6, 1.6))
+    ref = helix49()
+    settings = RenderSettings(**kw)
+    uv, idx, minor, sig, alphas, stamps = [], [], [], [], [], []
+    for j, a in enumerate(np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)):
+        t = j * frame_dt_s - duration / 2
+        ft = frame_truth(w, np.zeros(6), a, ref, DET, settings, time_s=t)
+        use = np.flatnonzero(ft.usable)
+        shift = rng.normal(0.0, tau, 2) if tau > 0 else np.zeros(2)
+        uv.append(ft.ellipse_centre_px[use] + rng.normal(0.0, sigma, (use.size, 2)) + shift)
+        idx.append(use)
+        minor.append(ft.semi_axes_px[use, 1])
+        sig.append(np.full(use.size, stated))
+        alphas.append(a)
+        stamps.append(STAMP0_NS + int(round(t * 1e9)))
+    obs = CentreObservations.from_views(uv, idx, np.array(alphas), stamp_ns_per_view=np.array(stamps, dtype=np.int64),
+                                        sigma_px_per_view=sig, minor_axis_px_per_view=minor)
+    return obs, {"w": w, "srd": srd, "sdd": SDD, "effect": effect, "term": term, "magnitude": mag,
+                 "physics": {"sigma_px": sigma, "shared_px": tau, "stated_px": stated}, "ref": ref}
+
+
+def analyse_truth_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_views: int = 72):
+    obs, truth = truth_campaign(seed, effect, scale, n_views)
+    st = solve_static(obs, truth["ref"].centres_of_m, DET, truth["srd"], truth["sdd"])
+    return ct_discrepancy.run(obs, st, DET), truth, st
