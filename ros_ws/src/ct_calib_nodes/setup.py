@@ -29,6 +29,8 @@ setup(
             "ct_demo = ct_calib_nodes.nodes.ct_demo:main",
             "ct_offline_solve = ct_calib_nodes.offline:main",
             "ct_discrepancy = ct_calib_nodes.discrepancy_cli:main",
+            "ct_history = ct_calib_nodes.history_cli:main",
+            "ct_archive_solve = ct_calib_nodes.archive:main",
         ],
     },
 )

@@ -2,6 +2,7 @@
 
     ct_offline_solve RECORDING --instrument ct_instrument.yaml --reference-object reference_object.yaml
                      [--out DIR] [--reference-error-map FILE] [--init-frames 6] [--loss linear]
+                     [--position-tolerance 1e-4] [--workers N]
 
 RECORDING is one ``.mcap`` file or a rosbag2 directory that follows INTERFACES.md
 (``/ct/detector/image`` + ``/ct/stage/joint_states`` paired by stamp). Without
@@ -29,6 +30,7 @@ problems are printed); 1 nothing usable; 2 bad arguments or files.
 from __future__ import annotations
 
 import argparse
+import os
 import pathlib
 import shutil
 import sys
@@ -38,9 +40,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ct_calib_nodes.core.ct_pipeline import (CampaignAccumulator, FrameProcessor, campaign_error_map,
-                                             solve_campaign_position, solve_campaign_static,
-                                             static_result_from_estimate)
+from ct_calib_nodes.core.ct_pipeline import (DEFAULT_POSITION_TOLERANCE_M, CampaignAccumulator, FrameProcessor,
+                                             campaign_error_map, repeatability, solve_campaign_position,
+                                             solve_campaign_static, static_result_from_estimate)
 from ct_calib_nodes.core.detect import FrameError
 from ct_calib_nodes.io import ct_files
 from ct_calib_nodes.io.convert import MessageError, array_from_image, stage_from_joint_state, stamp_ns
@@ -58,24 +60,88 @@ class OfflineResult:
     motions: dict = field(default_factory=dict)  # mode -> {k: MotionResult}
     maps: dict = field(default_factory=dict)     # mode -> {definition: ErrorMap} ("travel", "detector")
     map_positions: dict = field(default_factory=dict)  # mode -> position indices ks of the maps
+    repeatability: dict = field(default_factory=dict)  # mode -> {definition: [revisit group dicts]}
     frames: list = field(default_factory=list)   # FrameResult per processed frame, in order
     acc: CampaignAccumulator | None = None
     read_report: ReadReport | None = None
     counts: dict = field(default_factory=dict)
     problems: list = field(default_factory=list)
     notes: list = field(default_factory=list)      # what was applied to the inputs (thermal expansion, ...)
+    identity: list = field(default_factory=list)   # (reported SRD, message) of every identity initialisation
+
+
+class _StageClock:
+    """CPU seconds per pipeline stage (``timing`` dict of solve_recording), summed over processes."""
+
+    def __init__(self, timing):
+        self.t = timing if timing is not None else {}
+        for k in ("read", "decode", "detect", "identify", "solve"):
+            self.t.setdefault(k, 0.0)
+
+    def add(self, stage, seconds):
+        self.t[stage] += seconds
+
+
+# --- worker processes (parallel replay): decode + detect one frame ---------------------------------
+_WORKER: dict = {}
+
+
+def _worker_init(ref, detector, sdd, flat, init_frames, tolerance, dark=None):
+    try:
+        import cv2  # noqa: PLC0415
+
+        cv2.setNumThreads(1)        # one process per core: no thread pool on top
+    except ImportError:
+        pass
+    _WORKER["proc"] = FrameProcessor(ref, detector, sdd, flat, init_frames=init_frames, srd_tolerance_m=tolerance,
+                                     dark=dark)
+
+
+def _worker_detect(task):
+    """(stamp, CDR bytes of the Image, srd) -> (detections or None, problem or None, decode s, detect s)."""
+    from ct_calib_nodes.io.raw_replay import ImageView  # noqa: PLC0415
+
+    _t, data, srd = task
+    proc = _WORKER["proc"]
+    c0 = time.process_time()
+    try:
+        image, enc = array_from_image(ImageView.from_cdr(data), (proc.detector.rows, proc.detector.cols))
+    except (MessageError, ValueError) as exc:
+        return None, str(exc), time.process_time() - c0, 0.0
+    c1 = time.process_time()
+    try:
+        det = proc.detect(image, enc, srd)
+    except FrameError as exc:
+        return None, str(exc), c1 - c0, time.process_time() - c1
+    return det, None, c1 - c0, time.process_time() - c1
 
 
 def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: str = "linear",
-                    progress=None) -> OfflineResult:
-    """Replay a recording through detection, identity and the solvers (no files written)."""
+                    progress=None, namespace: str = "/",
+                    position_tolerance_m: float = DEFAULT_POSITION_TOLERANCE_M,
+                    workers: int = 1, timing: dict | None = None) -> OfflineResult:
+    """Replay a recording through detection, identity and the solvers (no files written).
+
+    ``namespace``: the cell's namespace in the recording (its raw topics are ``<ns>/ct/...``).
+    ``position_tolerance_m``: the stage position segmenter's tolerance (ct_pipeline.PositionSegmenter).
+    ``workers`` > 1: image decoding and sphere detection run in that many worker processes
+    (the images read as raw bytes and viewed without a copy, io/raw_replay.py); identity, the
+    accumulation and the solvers stay in this process and take the frames in recording order,
+    so the results are bit for bit those of ``workers`` = 1.
+    ``timing``: a dict filled with CPU seconds per stage (read, decode, detect, identify, solve).
+    """
+    from ct_calib_nodes.io import namespaces  # noqa: PLC0415
+
+    image_topic, stage_topic = (namespaces.topic(namespace, t) for t in namespaces.CT_RAW)
     say = progress or (lambda _m: None)
-    out = OfflineResult(read_report=ReadReport(), acc=CampaignAccumulator())
+    clock = _StageClock(timing)
+    out = OfflineResult(read_report=ReadReport(), acc=CampaignAccumulator(position_tolerance_m))
     counts = {"images": 0, "stage_readings": 0, "frames": 0, "bad_frames": 0, "bad_stage": 0, "unpaired": 0}
     proc = FrameProcessor(ref, instrument.detector, instrument.sdd_reported_m, instrument.flat_field(),
-                          init_frames=init_frames)
+                          init_frames=init_frames, srd_tolerance_m=position_tolerance_m, dark=instrument.dark)
     images, stages = {}, {}
     t0 = time.monotonic()
+    shape = (instrument.detector.rows, instrument.detector.cols)
 
     def take(results):
         for fr in results:
@@ -85,9 +151,24 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
             out.acc.add_frame(fr.stamp_ns, fr.alpha_rad, fr.srd_reported_m, idx, uv, sig,
                               int(np.count_nonzero(fr.flag)), minor)
 
-    def pair(t):
+    def bad_frame(t, text):
+        counts["bad_frames"] += 1
+        out.problems.append(f"frame {t} ns: skipped: {text}")
+
+    def identify(t, det, alpha, srd):
+        c = time.process_time()
+        take(proc.push_detections(t, det, alpha, srd))
+        clock.add("identify", time.process_time() - c)
+
+    def tick():
+        if counts["frames"] % 25 == 0:
+            rate = counts["frames"] / max(time.monotonic() - t0, 1e-9)
+            say(f"{counts['frames']} frames ({rate:.1f}/s), {len(out.acc.positions)} stage position(s)")
+
+    def paired(t):
+        """The stage reading (alpha, srd) of a completed pair, the image; None if unusable."""
         if t not in images or t not in stages:
-            return
+            return None
         img, js = images.pop(t), stages.pop(t)
         counts["frames"] += 1
         try:
@@ -95,27 +176,106 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
         except MessageError as exc:
             counts["bad_stage"] += 1
             out.problems.append(f"frame {t} ns: bad stage reading: {exc}")
-            return
+            return None
         try:
-            image, enc = array_from_image(img, (instrument.detector.rows, instrument.detector.cols))
-            take(proc.push(t, image, enc, alpha, srd))
-        except (MessageError, FrameError) as exc:
-            counts["bad_frames"] += 1
-            out.problems.append(f"frame {t} ns: skipped: {exc}")
-        if counts["frames"] % 25 == 0:
-            rate = counts["frames"] / max(time.monotonic() - t0, 1e-9)
-            say(f"{counts['frames']} frames ({rate:.1f}/s), {len(out.acc.positions)} stage position(s)")
+            proc.check_stage(alpha, srd)
+        except FrameError as exc:
+            bad_frame(t, exc)
+            return None
+        return img, alpha, srd
 
-    for m in iter_recording(recording, topics=(IMAGE, STAGE), report=out.read_report):
-        t = stamp_ns(m.msg.header.stamp)
-        if m.topic == IMAGE:
-            counts["images"] += 1
-            images[t] = m.msg
+    def messages(raw):
+        if raw:
+            from ct_calib_nodes.io.raw_replay import ImageView, iter_recording_raw  # noqa: PLC0415
+
+            it = iter_recording_raw(recording, topics=(image_topic, stage_topic), raw_topics=(image_topic,), report=out.read_report)
         else:
-            counts["stage_readings"] += 1
-            stages[t] = m.msg
-        pair(t)
+            it = iter_recording(recording, topics=(image_topic, stage_topic), report=out.read_report)
+        while True:
+            c = time.process_time()
+            m = next(it, None)
+            if m is None:
+                clock.add("read", time.process_time() - c)
+                return
+            if m.topic == image_topic and raw:
+                try:
+                    head = ImageView.from_cdr(m.msg)
+                except ValueError as exc:
+                    out.read_report.messages_undecodable += 1
+                    out.problems.append(f"undecodable image at {m.log_time_ns} ns: {exc}")
+                    clock.add("read", time.process_time() - c)
+                    continue
+                t = stamp_ns(head.header.stamp)
+                msg = m.msg.obj                         # the message's bytes, not copied
+            else:
+                t = stamp_ns(m.msg.header.stamp)
+                msg = m.msg
+            clock.add("read", time.process_time() - c)
+            if m.topic == image_topic:
+                counts["images"] += 1
+                images[t] = msg
+            else:
+                counts["stage_readings"] += 1
+                stages[t] = msg
+            yield t
+
+    if workers <= 1:
+        for t in messages(raw=False):
+            n0 = counts["frames"]
+            got = paired(t)
+            if got is not None:
+                img, alpha, srd = got
+                try:
+                    c = time.process_time()
+                    image, enc = array_from_image(img, shape)
+                    c1 = time.process_time()
+                    clock.add("decode", c1 - c)
+                    det = proc.detect(image, enc, srd)
+                    clock.add("detect", time.process_time() - c1)
+                except (MessageError, FrameError) as exc:
+                    bad_frame(t, exc)
+                else:
+                    identify(t, det, alpha, srd)
+            if counts["frames"] != n0:
+                tick()
+    else:
+        import collections  # noqa: PLC0415
+        import multiprocessing  # noqa: PLC0415
+        from concurrent.futures import ProcessPoolExecutor  # noqa: PLC0415
+
+        window = collections.deque()            # (stamp, alpha, srd, future), recording order
+        depth = 4 * workers
+
+        def drain(keep):
+            while len(window) > keep:
+                t, alpha, srd, fut = window.popleft()
+                det, problem, c_dec, c_det = fut.result()
+                clock.add("decode", c_dec)
+                clock.add("detect", c_det)
+                if problem is not None:
+                    bad_frame(t, problem)
+                else:
+                    identify(t, det, alpha, srd)
+
+        ctx = multiprocessing.get_context("forkserver")
+        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
+                                 initargs=(ref, instrument.detector, instrument.sdd_reported_m,
+                                           instrument.flat_field(), init_frames, position_tolerance_m,
+                                           instrument.dark)) as pool:
+            for t in messages(raw=True):
+                n0 = counts["frames"]
+                got = paired(t)
+                if got is not None:
+                    img, alpha, srd = got
+                    window.append((t, alpha, srd, pool.submit(_worker_detect, (t, img, srd))))
+                    drain(depth)
+                if counts["frames"] != n0:
+                    tick()
+            drain(0)
+    c = time.process_time()
     take(proc.flush())
+    clock.add("identify", time.process_time() - c)
+    out.identity = list(proc.init_messages)
     counts["unpaired"] = len(images) + len(stages)
     if counts["unpaired"]:
         out.problems.append(f"{len(images)} image(s) and {len(stages)} stage reading(s) without a partner")
@@ -123,10 +283,21 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
     out.problems += out.read_report.errors
     say(f"{counts['frames']} frames in {time.monotonic() - t0:.1f} s; "
         f"observations per position {[p.n_obs for p in out.acc.positions]}")
+    from ct_calib_nodes.io.ct_history import incomplete_positions  # noqa: PLC0415
+    warn = incomplete_positions(p.n_frames for p in out.acc.positions)
+    if warn:
+        out.problems.append(warn)
     if not out.acc.positions or out.acc.positions[0].n_frames < 3:
         out.problems.append("fewer than 3 usable frames at the first stage position: nothing to solve")
         return out
+    c_solve = time.process_time()
+    try:
+        return _solve_positions(out, instrument, ref, loss, say)
+    finally:
+        clock.add("solve", time.process_time() - c_solve)
 
+
+def _solve_positions(out, instrument, ref, loss, say) -> OfflineResult:
     out.static = solve_campaign_static(out.acc, ref.centres_of_m, instrument.detector,
                                        instrument.sdd_reported_m, loss=loss,
                                        centre_uncertainty_m=ref.center_uncertainty_m)
@@ -155,6 +326,8 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
                                             index_repeatability_rad=instrument.index_repeatability_rad)
                 out.maps[mode][definition] = em
                 out.map_positions[mode] = ks
+                out.repeatability.setdefault(mode, {})[definition] = repeatability(em, ks,
+                                                                                   out.acc.srd_tolerance_m)
     say(f"error motions solved at {len(out.motions.get('multi', {}))} position(s)")
     return out
 
@@ -166,8 +339,15 @@ def _result_dict(res, instrument, ref, recording, files) -> dict:
          "units": "SI (m, rad); covariance in products of the parameter units",
          "counts": res.counts, "problems": res.problems, "notes": res.notes,
          "stage_positions": [{"index": k, "srd_reported_m": p.srd_reported_m, "frames": p.n_frames,
+                              "srd_reading_range_m": float(np.ptp(p.srd_readings_m)),
+                              "first_stamp_ns": int(min(p.stamps_ns)), "last_stamp_ns": int(max(p.stamps_ns)),
                               "observations": p.n_obs, "rejected_detections": p.n_rejected}
                              for k, p in enumerate(res.acc.positions)],
+         "stage_position_rule": (f"positions split on motion in time: a reported SRD more than "
+                                 f"{res.acc.srd_tolerance_m:g} m from the current position's median reading starts "
+                                 f"a new position; a return to an earlier SRD is a new position (a revisit)"),
+         "repeatability": res.repeatability,
+         "identity": [{"srd_reported_m": srd, "message": m} for srd, m in res.identity],
          "static": res.static.to_dict() if res.static is not None else None, "error_motions": {}, "error_maps": {}}
     for mode, by_k in res.motions.items():
         d["error_motions"][mode] = {str(k): dict(r.to_dict(), units=list(MOTION_PARAM_UNITS))
@@ -178,8 +358,10 @@ def _result_dict(res, instrument, ref, recording, files) -> dict:
     return d
 
 
-def _write_result_mcap(path, res, instrument):
-    """The result topics, as the live graph publishes them."""
+def _write_result_mcap(path, res, instrument, namespace: str = "/"):
+    """The result topics, as the live graph publishes them (in the cell's namespace)."""
+    from ct_calib_nodes.io.namespaces import topic as ns_topic  # noqa: PLC0415
+
     from builtin_interfaces.msg import Time  # noqa: PLC0415
 
     from ct_calib_nodes.io.mcap_io import QOS_RELIABLE_LATCHED, Rosbag2McapWriter  # noqa: PLC0415
@@ -191,14 +373,15 @@ def _write_result_mcap(path, res, instrument):
 
     last = max(fr.stamp_ns for fr in res.frames)
     with Rosbag2McapWriter(path) as w:
-        w.add_topic("/ct/observations", "metro_msgs/msg/SphereObservationArray")
+        w.add_topic(ns_topic(namespace, "ct/observations"), "metro_msgs/msg/SphereObservationArray")
         for fr in res.frames:
-            w.write("/ct/observations", observation_array_msg(fr, stamp(fr.stamp_ns), instrument.detector), fr.stamp_ns)
-        w.add_topic("/ct/geometry", "metro_msgs/msg/CtGeometry", QOS_RELIABLE_LATCHED)
+            w.write(ns_topic(namespace, "ct/observations"), observation_array_msg(fr, stamp(fr.stamp_ns), instrument.detector), fr.stamp_ns)
+        w.add_topic(ns_topic(namespace, "ct/geometry"), "metro_msgs/msg/CtGeometry", QOS_RELIABLE_LATCHED)
         p0 = res.acc.positions[0]
-        w.write("/ct/geometry", geometry_msg(res.static, p0.srd_reported_m, instrument.sdd_reported_m,
+        w.write(ns_topic(namespace, "ct/geometry"), geometry_msg(res.static, p0.srd_reported_m, instrument.sdd_reported_m,
                                              instrument.detector, stamp(last), n_rejected=p0.n_rejected), last)
-        for mode, topic in (("multi", "/ct/error_map"), ("single", "/ct/error_map/single")):
+        for mode, topic in (("multi", ns_topic(namespace, "ct/error_map")),
+                            ("single", ns_topic(namespace, "ct/error_map/single"))):
             if mode not in res.maps:
                 continue
             em, ks = res.maps[mode]["travel"], res.map_positions[mode]
@@ -207,7 +390,8 @@ def _write_result_mcap(path, res, instrument):
             w.write(topic, error_map_msg(em, mode, motions, stamp(last)), last)
 
 
-def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files, reference_path=None):
+def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files, reference_path=None,
+                  namespace: str = "/"):
     """Write everything into a temporary directory, then move each file into out_dir."""
     from ct_calib_nodes.core.ct_pipeline import campaign_residuals  # noqa: PLC0415
     from ct_calib_nodes.io.campaign_outputs import write_report_and_export  # noqa: PLC0415
@@ -218,7 +402,7 @@ def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files
     tmp = pathlib.Path(tempfile.mkdtemp(prefix=".partial_", dir=out_dir))
     try:
         write_json_atomic(tmp / "results.json", _result_dict(res, instrument, ref, recording, files))
-        _write_result_mcap(tmp / "results.mcap", res, instrument)
+        _write_result_mcap(tmp / "results.mcap", res, instrument, namespace)
         if "multi" in res.maps:
             series = [res.maps[mode]["travel"] for mode in MODES if mode in res.maps] + [res.maps["multi"]["detector"]]
             em, ks = res.maps["multi"]["travel"], res.map_positions["multi"]
@@ -236,7 +420,11 @@ def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files
                 reference_path=reference_path, residuals=resid,
                 meta={"recording": str(recording), "instrument file": str(files["instrument"]),
                       "reference object file": str(files["reference_object"]),
-                      "frames": res.counts.get("frames"), "problems": len(res.problems)})
+                      "frames": res.counts.get("frames"), "problems": len(res.problems),
+                      "stage positions": f"{len(res.acc.positions)} (split on motion in time, tolerance "
+                                         f"{res.acc.srd_tolerance_m:g} m)",
+                      "repeatability (revisits, multi, travel)": repeatability_text(
+                          res.repeatability.get("multi", {}).get("travel", []))})
         for item in sorted(tmp.iterdir()):
             dest = out_dir / item.name
             if dest.is_dir():
@@ -245,6 +433,31 @@ def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out_dir
+
+
+def repeatability_text(groups) -> str:
+    """One line per revisited nominal SRD: positioning and straightness differences to the first visit."""
+    if not groups:
+        return "no stage position was revisited"
+    parts = []
+    for g in groups:
+        d = []
+        for f, lab in (("positioning_m", "positioning"), ("straightness_x_m", "straightness x"),
+                       ("straightness_y_m", "straightness y")):
+            u = g["u_" + f] or [float("nan")] * len(g[f])
+            d.append(lab + " " + ", ".join(f"{v * 1e6:+.2f} um (u {s * 1e6:.2f})" for v, s in zip(g[f], u)))
+        pos = ", ".join(str(k + 1) for k in g["positions"])
+        parts.append(f"SRD {g['srd_reported_m'][0] * 1e3:.3f} mm, positions {pos}: " + "; ".join(d))
+    return " | ".join(parts)
+
+
+def default_workers() -> int:
+    """Worker processes for detection: the cores this process may use, at most 8."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:
+        n = os.cpu_count() or 1
+    return max(1, min(8, n))
 
 
 def _find_file(given, recording: pathlib.Path, name: str, default):
@@ -256,6 +469,28 @@ def _find_file(given, recording: pathlib.Path, name: str, default):
     return default(), "package default (no file beside the recording)"
 
 
+def _store_history(db, res, rec, files, namespace, source="offline"):
+    """Every offline solve (usable or not) goes into the calibration history; a history that cannot be
+    written is reported, the results are still written."""
+    from ct_calib_nodes.io.ct_history import offline_records, store_offline  # noqa: PLC0415
+    from ct_calib_nodes.io.history import open_history  # noqa: PLC0415
+
+    if res.static is None:
+        return []
+    h = open_history(db or None, logger=lambda m: print(f"[offline] {m}"))
+    if h is None:
+        return []
+    try:
+        stored = store_offline(h, offline_records(res, recording=rec, files=files, cell=namespace, source=source))
+        print(f"[offline] history {h.path}: solve(s) {[s.id for s in stored]} (cell {namespace})")
+        return stored
+    except Exception as exc:  # noqa: BLE001
+        print(f"[offline] calibration history not recorded: {exc}")
+        return []
+    finally:
+        h.close()
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
@@ -265,7 +500,17 @@ def main(argv=None) -> int:
     ap.add_argument("--reference-error-map", help="independent reference error map (CSV/YAML) for delta plots")
     ap.add_argument("--out", help="output directory (default <recording>_calibration)")
     ap.add_argument("--init-frames", type=int, default=6, help="frames used to initialise sphere identity")
+    ap.add_argument("--position-tolerance", type=float, default=DEFAULT_POSITION_TOLERANCE_M,
+                    help="a reported SRD further than this from the current stage position's median reading "
+                         "starts a new position [m] (above the read-back jitter, below the smallest step)")
+    ap.add_argument("--workers", type=int, default=default_workers(),
+                    help="processes that decode and detect frames (1 = all in this process; the results are "
+                         "the same bit for bit) [default: the usable cores, at most 8]")
     ap.add_argument("--loss", default="linear", help="least-squares loss: linear, huber, soft_l1, cauchy, arctan")
+    ap.add_argument("--namespace", help="the CT cell's namespace in the recording (e.g. /cell_a); default: the only "
+                                        "one whose <ns>/ct/detector/image is in it")
+    ap.add_argument("--history", default="", help="calibration history database (default $METRO_HISTORY_DB or "
+                                                  "~/.local/share/metro_cell/history.sqlite; none = do not record)")
     args = ap.parse_args(argv)
     rec = pathlib.Path(args.recording)
     if not rec.exists():
@@ -280,21 +525,35 @@ def main(argv=None) -> int:
     except ct_files.CtFileError as exc:
         print(f"ct_offline_solve: {exc}", file=sys.stderr)
         return 2
+    from ct_calib_nodes.io import namespaces  # noqa: PLC0415
+    try:
+        namespace = namespaces.find_namespace(rec, args.namespace)
+    except (ValueError, FileNotFoundError) as exc:
+        print(f"ct_offline_solve: {exc}", file=sys.stderr)
+        return 2
     print(f"[offline] instrument file {inst_path} ({how_i}); reference object {ref_path} ({how_r})")
+    if namespace != "/":
+        print(f"[offline] CT cell namespace {namespace}")
     print(f"[offline] {thermal_note}")
     out_dir = pathlib.Path(args.out) if args.out else rec.parent / f"{rec.stem}_calibration"
+    if not (args.position_tolerance > 0 and np.isfinite(args.position_tolerance)):
+        print(f"ct_offline_solve: --position-tolerance must be a positive length [m], got {args.position_tolerance}",
+              file=sys.stderr)
+        return 2
     res = solve_recording(rec, instrument, ref, init_frames=args.init_frames, loss=args.loss,
-                          progress=lambda m: print(f"[offline] {m}", flush=True))
+                          progress=lambda m: print(f"[offline] {m}", flush=True), namespace=namespace,
+                          position_tolerance_m=args.position_tolerance, workers=max(1, args.workers))
     res.notes.append(thermal_note)
     for p in res.problems[:20]:
         print(f"[offline] problem: {p}")
     if len(res.problems) > 20:
         print(f"[offline] ... and {len(res.problems) - 20} more problems (all in results.json)")
+    _store_history(args.history, res, rec, {"instrument": inst_path, "reference_object": ref_path}, namespace)
     if res.static is None or not res.static.success:
         print("[offline] nothing usable: no results written")
         return 1
     write_outputs(out_dir, res, instrument, ref, rec, {"instrument": inst_path, "reference_object": ref_path},
-                  reference_path=args.reference_error_map)
+                  reference_path=args.reference_error_map, namespace=namespace)
     print(f"[offline] results: {out_dir / 'results.json'}; report: {out_dir / 'report' / 'index.html'}")
     return 0
 

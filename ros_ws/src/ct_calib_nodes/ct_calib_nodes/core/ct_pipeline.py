@@ -4,9 +4,14 @@ Three front doors share this module: the live nodes (detector, geometry
 solver, error-motion node), the offline replay of a recording, and tests.
 Identical inputs give identical numbers in all three.
 
-- ``CampaignAccumulator`` groups sphere-centre observations into stage
-  positions: a new position starts whenever the instrument-reported SRD
-  changes (by more than ``srd_tolerance_m``).
+- ``PositionSegmenter`` splits the time-ordered stage readings into stage
+  positions: a new position starts when the reported SRD moves away from the
+  current position's readings (their median) by more than a tolerance. A
+  position is a stretch of time: returning to an SRD visited before is a new
+  position (a revisit), never merged with the earlier one.
+- ``CampaignAccumulator`` groups sphere-centre observations into those
+  positions, in the order the frames come.
+- ``revisit_groups`` / ``repeatability`` compare the visits of one nominal SRD.
 - ``solve_campaign_static`` / ``solve_campaign_position`` run the static and
   error-motion solvers on an accumulated position.
 """
@@ -23,11 +28,66 @@ from .observations import CentreObservations
 from .static_solver import StaticResult, solve_static
 
 
+#: Default tolerance of the position segmenter [m]: far above the read-back jitter of a stage
+#: encoder (micrometres), far below any stage step of a calibration campaign (millimetres).
+DEFAULT_POSITION_TOLERANCE_M = 1e-4
+
+
+class PositionSegmenter:
+    """Stage positions from the time-ordered sequence of reported SRDs.
+
+    A reading belongs to the current position when it lies within
+    ``tolerance_m`` of the median of that position's readings so far;
+    otherwise the stage has moved and a new position starts. Positions are
+    numbered in time; a position is never reopened, so a return to an SRD
+    visited earlier (a revisit, a bidirectional run) is a new position.
+
+    Parameters
+    ----------
+    tolerance_m : float
+        Largest departure from the current position's median reading that is
+        still the same position [m]; set it above the read-back jitter and
+        below the smallest stage step.
+    """
+
+    def __init__(self, tolerance_m: float = DEFAULT_POSITION_TOLERANCE_M):
+        tol = float(tolerance_m)
+        if not (np.isfinite(tol) and tol > 0):
+            raise ValueError(f"stage position tolerance must be a positive length [m], got {tolerance_m}")
+        self.tolerance_m = tol
+        self.k = -1
+        self._readings: list = []
+
+    @property
+    def reference_m(self) -> float:
+        """Median of the current position's readings [m] (NaN before the first reading)."""
+        return float(np.median(self._readings)) if self._readings else float("nan")
+
+    def moved(self, srd_reported_m: float) -> bool:
+        """Would this reading start a new position?"""
+        return self.k < 0 or abs(float(srd_reported_m) - self.reference_m) > self.tolerance_m
+
+    def push(self, srd_reported_m: float) -> tuple:
+        """Take the next reading in time; returns (position index, True if it starts a new position)."""
+        srd = float(srd_reported_m)
+        if not np.isfinite(srd):
+            raise ValueError(f"non-finite SRD reading {srd_reported_m}")
+        new = self.moved(srd)
+        if new:
+            self.k += 1
+            self._readings = []
+        self._readings.append(srd)
+        return self.k, new
+
+
 @dataclass
 class PositionData:
-    """Observations of one stage position, frame by frame."""
+    """Observations of one stage position, frame by frame.
+
+    ``srd_reported_m`` is the median of the position's SRD readings."""
 
     srd_reported_m: float
+    srd_readings_m: list = field(default_factory=list)
     stamps_ns: list = field(default_factory=list)
     alphas_rad: list = field(default_factory=list)
     uv_px: list = field(default_factory=list)           # per frame (Q_j, 2)
@@ -62,23 +122,20 @@ class PositionData:
 class CampaignAccumulator:
     """Sphere-centre observations of a campaign, grouped by stage position.
 
+    Frames must come in time order (as a stage delivers them); positions are
+    split on motion by a :class:`PositionSegmenter`.
+
     Parameters
     ----------
     srd_tolerance_m : float
-        Reported-SRD change that starts a new stage position [m].
+        Tolerance of the position segmenter [m].
     """
 
-    def __init__(self, srd_tolerance_m: float = 1e-5):
-        self.srd_tolerance_m = float(srd_tolerance_m)
+    def __init__(self, srd_tolerance_m: float = DEFAULT_POSITION_TOLERANCE_M):
+        self.segmenter = PositionSegmenter(srd_tolerance_m)
+        self.srd_tolerance_m = self.segmenter.tolerance_m
         self.positions: list[PositionData] = []
         self._seen_stamps: set = set()
-
-    def position_of(self, srd_reported_m: float) -> int:
-        """Index of the position a reading belongs to (a new one if the SRD moved)."""
-        for k, p in enumerate(self.positions):
-            if abs(p.srd_reported_m - srd_reported_m) <= self.srd_tolerance_m:
-                return k
-        return len(self.positions)
 
     def add_frame(self, stamp_ns: int, alpha_rad: float, srd_reported_m: float, sphere_index, uv_px,
                   sigma_px=None, n_rejected: int = 0, minor_axis_px=None) -> int:
@@ -102,10 +159,12 @@ class CampaignAccumulator:
         minor = None if minor_axis_px is None else np.asarray(minor_axis_px, dtype=float).reshape(-1)
         if minor is not None and len(minor) != len(idx):
             raise ValueError(f"{len(idx)} sphere indices but {len(minor)} ellipse axes")
-        k = self.position_of(srd_reported_m)
-        if k == len(self.positions):
+        k, new = self.segmenter.push(srd_reported_m)
+        if new:
             self.positions.append(PositionData(float(srd_reported_m)))
         p = self.positions[k]
+        p.srd_readings_m.append(float(srd_reported_m))
+        p.srd_reported_m = self.segmenter.reference_m
         p.stamps_ns.append(stamp_ns)
         p.alphas_rad.append(float(alpha_rad))
         p.uv_px.append(uv)
@@ -250,6 +309,78 @@ def campaign_error_map(acc: CampaignAccumulator, motion_results: dict, static: S
                      index_repeatability_rad=index_repeatability_rad), ks
 
 
+def revisit_groups(srd_reported_m, tolerance_m: float = DEFAULT_POSITION_TOLERANCE_M) -> list:
+    """Positions that visit the same nominal SRD: lists of position indices (time order), one
+    per nominal SRD visited more than once.
+
+    Two positions are visits of one nominal SRD when their reported SRDs (medians) agree within
+    ``tolerance_m`` (chained: sorted readings closer than the tolerance to their neighbour).
+    """
+    srd = np.asarray(srd_reported_m, dtype=float).reshape(-1)
+    if srd.size == 0:
+        return []
+    order = np.argsort(srd, kind="stable")
+    groups, cur = [], [int(order[0])]
+    for a, b in zip(order[:-1], order[1:]):
+        if srd[b] - srd[a] <= tolerance_m:
+            cur.append(int(b))
+        else:
+            groups.append(cur)
+            cur = [int(b)]
+    groups.append(cur)
+    return [sorted(g) for g in groups if len(g) > 1]
+
+
+def repeatability(em, ks, tolerance_m: float = DEFAULT_POSITION_TOLERANCE_M) -> list:
+    """Repeatability of the stage from revisits: every error-map component at each revisit of a
+    nominal SRD minus its value at the first visit, with the standard uncertainty of that
+    difference from the map's joint covariance (correlations through the shared static geometry
+    included).
+
+    Parameters
+    ----------
+    em : error_map.ErrorMap
+        A map whose row i is stage position ``ks[i]``.
+    ks : sequence of int
+        Position index of each map row (campaign_error_map's second return value).
+    tolerance_m : float
+        Reported SRDs within this of each other are one nominal SRD [m].
+
+    Returns
+    -------
+    list of dict, one per nominal SRD visited more than once (JSON-ready, SI units; angles also
+    in arcseconds): ``positions`` (time order), ``srd_reported_m``, per component ``<c>``
+    (differences to the first visit, one per later visit), ``u_<c>`` (or None), and
+    ``range_<c>`` (max - min over all visits).
+    """
+    from .error_map import ARCSEC_PER_RAD, COMPONENT_FIELDS  # noqa: PLC0415
+
+    ks = [int(k) for k in ks]
+    srd = np.asarray(em.srd_reported_m, dtype=float)
+    out = []
+    for rows in revisit_groups(srd, tolerance_m):
+        first, later = rows[0], rows[1:]
+        g = {"positions": [ks[i] for i in rows], "srd_reported_m": [float(srd[i]) for i in rows],
+             "definition": em.definition,
+             "meaning": "value at each revisit minus the value at the first visit of the same nominal SRD"}
+        for c, f in enumerate(COMPONENT_FIELDS):
+            v = em.values(f)
+            d = np.array([v[i] - v[first] for i in later])
+            u = None
+            if em.covariance is not None:
+                cv = em.covariance
+                a = 6 * first + c
+                u = [float(np.sqrt(max(cv[6 * i + c, 6 * i + c] + cv[a, a] - 2 * cv[6 * i + c, a], 0.0)))
+                     for i in later]
+            g[f] = d.tolist()
+            g["u_" + f] = u
+            g["range_" + f] = float(np.ptp(v[rows]))
+            if f.endswith("_rad"):
+                g[f.replace("_rad", "_arcsec")] = (d * ARCSEC_PER_RAD).tolist()
+        out.append(g)
+    return out
+
+
 def campaign_residuals(acc: CampaignAccumulator, static_x, centres_of_m, detector: DetectorSpec,
                        motions: dict, terms=(), label: str = "campaign"):
     """Reprojection residuals (observed - modelled) [px] of every stage position with a model.
@@ -321,16 +452,21 @@ class FrameProcessor:
     """Sphere detection and identity for a stream of CT frames.
 
     Identity is initialised afresh at every stage position (a new position
-    starts when the reported SRD changes) from that position's first
+    starts when the reported SRD moves, PositionSegmenter) from that position's first
     ``init_frames`` frames, which are buffered and then released together;
     afterwards every frame is assigned as it comes. Identity therefore depends
     only on the frames themselves, never on when a solved geometry arrives:
     the same frames in the same order give the same results, live or offline.
+
+    With ``track_identity`` (default) a position after the first starts from the
+    previous position's identification pose moved by the reported travel
+    (SphereIdentifier.initialise_tracked, about 50 times cheaper than the pose
+    search); the full pose search runs when that does not explain the frames.
     """
 
     def __init__(self, ref, detector: DetectorSpec, sdd_reported_m: float, flat_field_counts: float,
                  init_frames: int = 6, detection_settings=None, identify_settings=None,
-                 srd_tolerance_m: float = 1e-5, dark=None):
+                 srd_tolerance_m: float = DEFAULT_POSITION_TOLERANCE_M, track_identity: bool = True, dark=None):
         from .identify import SphereIdentifier  # noqa: PLC0415
 
         self.ref = ref
@@ -340,12 +476,17 @@ class FrameProcessor:
                      else (float(flat_field_counts) if flat_field_counts else None))   # scalar or flat-field image
         self.dark = dark
         self.init_frames = max(1, int(init_frames))
-        self.srd_tolerance_m = float(srd_tolerance_m)
+        self.segmenter = PositionSegmenter(srd_tolerance_m)
+        self.srd_tolerance_m = self.segmenter.tolerance_m
         self.detection_settings = detection_settings
         self.identify_settings = identify_settings
         self._new_identifier = lambda: SphereIdentifier(ref.ids, ref.centres_of_m, ref.diameters_m, detector,
                                                         self.sdd, identify_settings)
         self.identifier = None
+        self.track = bool(track_identity)
+        self._track_from = None     # (identification pose, its SRD) of the previous position
+        self._init_srd = None
+        self._diagnosed = False
         self._pending = []          # (stamp, alpha, srd, detections) of this position before initialisation
         self.srd_current = None
         self.n_frames = 0
@@ -371,19 +512,33 @@ class FrameProcessor:
         including a stage reading no instrument can produce (non-finite, or the object at or
         beyond the detector: SRD outside (0, SDD)).
         """
+        self.check_stage(alpha_rad, srd_m)
+        det = self.detect(image, encoding, srd_m)      # may raise FrameError
+        return self.push_detections(stamp_ns, det, alpha_rad, srd_m)
+
+    def check_stage(self, alpha_rad: float, srd_m: float) -> None:
+        """Raise detect.FrameError for a stage reading no instrument can produce."""
         from .detect import FrameError  # noqa: PLC0415
 
         if not (np.isfinite(alpha_rad) and np.isfinite(srd_m) and 0.0 < srd_m < self.sdd):
             raise FrameError("bad_stage_reading", f"rotary angle {alpha_rad} rad, reported SRD {srd_m} m: the SRD "
                                                   f"must be finite and between 0 and the source-to-detector "
                                                   f"distance {self.sdd} m")
-        det = self.detect(image, encoding, srd_m)      # may raise FrameError
+
+    def push_detections(self, stamp_ns: int, det, alpha_rad: float, srd_m: float) -> list:
+        """The identity half of :meth:`push`, for detections made elsewhere (``detect`` of a
+        FrameProcessor with the same settings, e.g. in a worker process): frames given in the
+        same order give the same results bit for bit as :meth:`push`."""
         self.n_frames += 1
         out = []
-        if self.srd_current is None or abs(srd_m - self.srd_current) > self.srd_tolerance_m:
+        _k, new_position = self.segmenter.push(srd_m)
+        if new_position:
             out += self.flush()                        # the previous position ends here
-            self.srd_current = float(srd_m)
+            if self.identifier is not None and self.identifier.initialised and self.identifier._geom is None:
+                self._track_from = (self.identifier._w.copy(), self._init_srd)
             self.identifier = self._new_identifier()
+            self._diagnosed = False
+        self.srd_current = self.segmenter.reference_m
         if self.identifier.initialised:
             return out + [self._assign(int(stamp_ns), float(alpha_rad), float(srd_m), det)]
         self._pending.append((int(stamp_ns), float(alpha_rad), float(srd_m), det))
@@ -398,8 +553,18 @@ class FrameProcessor:
 
     def _try_initialise(self, final: bool) -> list:
         p = self._pending
-        init = self.identifier.initialise([f[3].centre_px for f in p], [f[1] for f in p], p[0][2])
-        self.init_messages.append((p[0][2], init.message))
+        centres, alphas, srd = [f[3].centre_px for f in p], [f[1] for f in p], p[0][2]
+        init = None
+        if self.track and self._track_from is not None:
+            init = self.identifier.initialise_tracked(self._track_from[0], self._track_from[1], centres, alphas, srd)
+            self.init_messages.append((srd, init.message))
+        if init is None or not init.success:
+            # the mirrored / reversed diagnosis costs three pose searches: once per position
+            init = self.identifier.initialise(centres, alphas, srd, diagnose=not self._diagnosed)
+            self._diagnosed = self._diagnosed or not init.success
+            self.init_messages.append((srd, init.message))
+        if init.success:
+            self._init_srd = srd
         if not init.success and not final:
             p.pop(0)                # try again with a newer set of frames
             return []
@@ -427,3 +592,34 @@ class FrameProcessor:
             semi_axes_px=np.concatenate([np.asarray(det.semi_axes_px).reshape(-1, 2), np.full((nr, 2), np.nan)]),
             angle_rad=np.concatenate([np.asarray(det.angle_rad).reshape(-1), np.full(nr, np.nan)]),
             fit_rms_px=np.concatenate([np.asarray(det.fit_rms_px).reshape(-1), np.full(nr, np.nan)]))
+
+
+class FrameRateMonitor:
+    """Processing time per frame against the interval between frame stamps (smoothed)."""
+
+    def __init__(self, smoothing: float = 0.2, warm_up: int = 5, margin: float = 1.05):
+        self.a, self.warm_up, self.margin = smoothing, warm_up, margin
+        self.proc_s = self.interval_s = None
+        self.last_stamp = None
+        self.n = 0
+
+    @staticmethod
+    def _ewma(old, new, a):
+        return new if old is None else (1 - a) * old + a * new
+
+    def add(self, stamp_ns: int, seconds: float) -> bool:
+        """Record one frame; True when frames come faster than they are processed."""
+        self.proc_s = self._ewma(self.proc_s, seconds, self.a)
+        if self.last_stamp is not None and stamp_ns > self.last_stamp:
+            self.interval_s = self._ewma(self.interval_s, (stamp_ns - self.last_stamp) * 1e-9, self.a)
+        self.last_stamp = stamp_ns if self.last_stamp is None else max(self.last_stamp, stamp_ns)
+        self.n += 1
+        return bool(self.n > self.warm_up and self.interval_s and self.proc_s > self.margin * self.interval_s)
+
+    @property
+    def processing_hz(self) -> float:
+        return 1.0 / self.proc_s if self.proc_s else float("nan")
+
+    @property
+    def arrival_hz(self) -> float:
+        return 1.0 / self.interval_s if self.interval_s else float("nan")

@@ -38,7 +38,7 @@ from .lm import LOSSES, STOL, correlation_from_covariance, covariance_from_jacob
 from .noise import (MAX_RMS_RATIO, NoiseModel, assess_fit, axis_normals, axis_weights_sigma, estimate_noise,
                     sandwich_covariance)
 from .observations import CentreObservations
-from .static_solver import StaticResult, _plain
+from .static_solver import StaticResult, _plain, status_fields
 from .terms import check_terms
 
 MODES = ("multi", "single")
@@ -133,7 +133,7 @@ class MotionResult:
             "std_total": self.std_total, "covariance": self.covariance,
             "covariance_total": self.covariance_total, "correlation": self.correlation,
             "variance_factor": self.variance_factor, "rms_px": self.rms_px, "cost": self.cost,
-            "success": self.success, "status": self.status, "message": self.message,
+            "success": self.success, **status_fields(self.success, self.outcome, self.status), "message": self.message,
             "nfev": self.nfev, "njev": self.njev, "n_iter": self.n_iter, "n_obs": self.n_obs,
             "n_views": self.n_views, "mode": self.mode, "condition": self.condition,
             "srd_reported_k_m": self.srd_reported_k_m, "srd_reported_1_m": self.srd_reported_1_m,

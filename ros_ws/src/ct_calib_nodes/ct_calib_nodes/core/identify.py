@@ -11,8 +11,8 @@ Method
 (source, axis at the reported SRD, detector perpendicular at the stated SDD,
 centred) and searches its pose:
 
-1. coarse: rho_Y over 360 deg in 2-deg steps, the object upright
-   (rho_X = rho_Z = 0), its origin on the axis, a lateral offset and height
+1. coarse: rho_Y over 360 deg in 2-deg steps, the object upright or upside
+   down (rho_X = 0 or pi, rho_Z = 0), its origin on the axis, a lateral offset and height
    that match the mean detected position, plus a height grid of +-4 mm in
    1 mm steps; each candidate is scored by a truncated nearest-neighbour cost
    over all initial frames (``sum min(d, gate)^2``), robust to missed and
@@ -27,10 +27,17 @@ centred) and searches its pose:
    must beat the runner-up by ``min_margin``. This matters: a helix is
    nearly invariant under a screw motion, and the relabelling i -> i + 1
    fits every sphere but the two ends to a fraction of a pixel; only the
-   end spheres tell the hypotheses apart. The object must be upright
-   (sphere 1 at the bottom as in its calibration frame); helix49 is also
-   exactly symmetric under turning it upside down (i -> 50 - i), which no
-   image can resolve.
+   end spheres tell the hypotheses apart.
+4. orientation: the search covers the object upright (as in its calibration
+   frame) and turned upside down (rho_X = pi). When both explain the frames
+   alike, the calibrated centres decide: an object whose centres map onto
+   themselves under that turn (relabelled; the ideal helix49 does, i -> 50 - i)
+   to within ``symmetric_tolerance_m`` gives the same instrument geometry
+   either way (upright labelling taken, said in the message); otherwise the
+   pose whose residuals are ``flip_ms_ratio`` times smaller wins, or the
+   initialisation refuses and says why. A failed search tries the frames
+   mirrored (columns, rows) and the rotation reversed, and says "check image
+   orientation / rotation direction", naming the variant that fits.
 
 ``assign`` then predicts every sphere at the frame's alpha and assigns each
 detection to its nearest prediction if (a) it is within ``gate_px``, (b) no
@@ -103,6 +110,17 @@ class IdentifySettings:
         The best hypothesis must leave at least this many fewer detections
         or visible isolated spheres unexplained than the runner-up, else the
         initialisation fails instead of guessing.
+    upside_down : bool
+        Also search the object turned upside down (180 deg about its X axis).
+    symmetric_tolerance_m : float
+        When the upright and the upside-down pose explain the frames equally,
+        an object whose calibrated centres map onto themselves under that turn
+        (relabelled) to within this rms [m] is symmetric: either labelling gives
+        the same instrument geometry, and the upright one is taken.
+    flip_ms_ratio : float
+        Otherwise the upright / upside-down question is decided only when one
+        pose's mean squared residual is this many times smaller than the
+        other's; else the initialisation refuses, naming why.
     """
 
     gate_px: float | None = None
@@ -113,6 +131,9 @@ class IdentifySettings:
     height_step_m: float = 1e-3
     n_starts: int = 6
     min_margin: int = 2
+    upside_down: bool = True
+    symmetric_tolerance_m: float = 2e-6
+    flip_ms_ratio: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -174,6 +195,20 @@ class Assignment:
     @property
     def n_assigned(self) -> int:
         return int(np.count_nonzero(self.ids >= 0))
+
+
+def _is_flipped(w) -> bool:
+    """Is the pose's rho_X nearer pi than 0 (the object upside down)?"""
+    return bool(abs(np.angle(np.exp(1j * w[10]))) > np.pi / 2)
+
+
+def _rigid_rms(a, b) -> float:
+    """RMS distance [m] left after the best proper rigid motion of points a (N, 3) onto b (Kabsch)."""
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    u, _s, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    dfix = np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))])
+    r = vt.T @ dfix @ u.T
+    return float(np.sqrt(np.mean(np.sum(((a - ca) @ r.T + cb - b) ** 2, axis=1))))
 
 
 def _check_centres(c, name="centres_px"):
@@ -276,7 +311,7 @@ class SphereIdentifier:
                 & (pts[..., 1] >= -r_px) & (pts[..., 1] <= self.detector.rows - 1 + r_px))
 
     # ------------------------------------------------------------------ initialise
-    def initialise(self, frames_centres_px, alphas_rad, srd_m: float) -> InitialisationResult:
+    def initialise(self, frames_centres_px, alphas_rad, srd_m: float, diagnose: bool = True) -> InitialisationResult:
         """Find the object pose on the nominal instrument from a few frames.
 
         Parameters
@@ -301,6 +336,7 @@ class SphereIdentifier:
             raise ValueError(f"srd_m must be in (0, sdd), got {srd_m}")
         self._geom, self._motion = None, None
         self._shift, self._scale = np.zeros(2), 1.0
+        self._alphas = alphas
         n_det = sum(len(f) for f in frames)
         if n_det < 4:
             self._w = None
@@ -316,8 +352,11 @@ class SphereIdentifier:
         cands = []
         dy_grid = np.arange(-self.settings.height_search_m, self.settings.height_search_m + 1e-12,
                             self.settings.height_step_m)
-        for rho_y in np.deg2rad(np.arange(0.0, 360.0, self.settings.coarse_step_deg)):
+        flips = (0.0, np.pi) if self.settings.upside_down else (0.0,)
+        grid = [(f, r) for f in flips for r in np.deg2rad(np.arange(0.0, 360.0, self.settings.coarse_step_deg))]
+        for flip, rho_y in grid:
             w0 = self._nominal_w(srd_m)
+            w0[10] = flip
             w0[11] = rho_y
             pred, r_px = self._raw_predict(alphas, w0)
             vis = self._in_view(pred, r_px)
@@ -329,16 +368,20 @@ class SphereIdentifier:
                 w = w0.copy()
                 w[1] -= dcol * pitch                # detector offset: a uniform column shift
                 w[8] += -drow * pitch / mag + dy    # object height
-                pred, _ = self._raw_predict(alphas, w)
+                pred = forward_srf(w, self.centres_of_m, alphas, self.detector)     # centres only
                 cands.append((self._score(frames, pred, coarse_gate), w))
         cands.sort(key=lambda t: t[0])
         starts = []
-        for sc, w in cands:
-            if all(abs(np.angle(np.exp(1j * (w[11] - v[11])))) > np.deg2rad(5.0) or abs(w[8] - v[8]) > 1e-3
-                   for v in starts):
-                starts.append(w)
-            if len(starts) >= self.settings.n_starts:
-                break
+        for flip in flips:                  # the best few distinct poses of each orientation
+            n0 = len(starts)
+            for sc, w in cands:
+                if w[10] != flip:
+                    continue
+                if all(abs(np.angle(np.exp(1j * (w[11] - v[11])))) > np.deg2rad(5.0) or abs(w[8] - v[8]) > 1e-3
+                       or v[10] != flip for v in starts):
+                    starts.append(w)
+                if len(starts) - n0 >= self.settings.n_starts:
+                    break
         nfev = 0
         results = []
         for w in starts:
@@ -349,45 +392,174 @@ class SphereIdentifier:
             # the same labelling reached from another start is not a rival hypothesis
             if any(np.max(np.abs(pred - r[6])) < gate for r in results):
                 continue
-            # final score: unmatched detections and unexplained visible, isolated predictions
-            n_unmatched = 0
-            n_missing = 0
-            for j, f in enumerate(frames):
-                idx, _, _ = self._match(f, pred[j], r_px[j], gate)
-                n_unmatched += int(np.count_nonzero(idx < 0))
-                vis = self._in_view(pred[j], -r_px[j])
-                dd = np.linalg.norm(pred[j][:, None] - pred[j][None], axis=2)
-                np.fill_diagonal(dd, np.inf)
-                iso = vis & (dd.min(axis=1) > 2.0 * r_px[j] + self.settings.separation_margin_px)
-                if len(f):
-                    near = np.linalg.norm(pred[j][:, None] - f[None], axis=2).min(axis=1)
-                else:
-                    near = np.full(len(pred[j]), np.inf)
-                n_missing += int(np.count_nonzero(iso & (near > gate)))
-            results.append((n_unmatched + n_missing, float(np.mean(res ** 2)) if res.size else np.inf,
-                            w, res, n_match, gate, pred))
+            results.append((self._unexplained(frames, pred, r_px, gate),
+                            float(np.mean(res ** 2)) if res.size else np.inf, w, res, n_match, gate, pred))
         results.sort(key=lambda t: (t[0], t[1]))
+        margin = results[1][0] - results[0][0] if len(results) > 1 else np.inf
+        note, refuse = "", ""
+        if margin < self.settings.min_margin and _is_flipped(results[0][2]) != _is_flipped(results[1][2]):
+            # upright and upside down explain the frames alike: symmetric object, or decide on residuals
+            results, note, refuse = self._orientation(results, frames)
+            margin = np.inf if not refuse else margin
         bad, _, w, res, n_match, gate_final, _ = results[0]
-        margin = results[1][0] - bad if len(results) > 1 else np.inf
         self._w = w
         rms = float(np.sqrt(np.mean(res ** 2) * 2)) if res.size else np.nan
         ok = bool(res.size and rms < gate_final and n_match >= 0.6 * n_det
-                  and margin >= self.settings.min_margin)
-        msg = (f"{n_match} of {n_det} detections matched, rms {rms:.3f} px, {bad} unexplained "
-               f"(next pose hypothesis: {bad + margin})")
-        msg = ("pose found: " if ok else "pose search failed: ") + msg
-        if not ok:
+                  and margin >= self.settings.min_margin and not refuse)
+        msg = (f"{n_match} of {n_det} detections matched, rms {rms:.3f} px, {bad} unexplained"
+               + (f" (next pose hypothesis: {bad + margin})" if np.isfinite(margin) else ""))
+        if ok:
+            msg = "pose found: " + msg + ("; mounted upside down (turned 180 deg about its X axis)"
+                                          if _is_flipped(w) else "") + note
+        else:
+            msg = "pose search failed: " + msg + (f"; {refuse}" if refuse else "")
             self._w = None
+            if diagnose:
+                msg += "; " + self._diagnose(frames, alphas, srd_m)
+        return InitialisationResult(w, res, rms, n_match, n_det, 0.5 * float(np.sum(res ** 2)), ok, msg, nfev)
+
+    def _orientation(self, results, frames):
+        """Decide between an upright and an upside-down pose that leave the same detections
+        unexplained. Returns (results reordered, note, refusal reason or "")."""
+        a, b = results[0], results[1]
+        # which sphere of a sits where each sphere of b is predicted, over all frames
+        votes = np.full((len(self.ids), len(self.ids)), 0)
+        for pa, pb in zip(a[6], b[6]):
+            d = np.linalg.norm(pb[:, None] - pa[None], axis=2)
+            votes[np.arange(len(self.ids)), d.argmin(axis=1)] += 1
+        perm = votes.argmax(axis=1)
+        c = self.centres_of_m
+        d_sym = _rigid_rms(c, c[perm]) if np.unique(perm).size == perm.size else np.inf
+        up, down = (a, b) if not _is_flipped(a[2]) else (b, a)
+        if d_sym > self.settings.symmetric_tolerance_m:
+            # the identification model holds the instrument nominal (model error ~0.3 px): compare the two
+            # labellings with every geometry parameter free, where only the detection noise is left
+            ms = {id(r): self._full_fit_ms(frames, r[2], r[5]) for r in (a, b)}
+            a, b = sorted((a, b), key=lambda r: ms[id(r)])
+            ms_a, ms_b = ms[id(a)], ms[id(b)]
+            results = [a, b] + results[2:]
+        if d_sym <= self.settings.symmetric_tolerance_m:
+            return ([up, down] + results[2:],
+                    f"; the object is symmetric under turning it upside down (relabelled, to {d_sym * 1e6:.2f} um "
+                    f"rms): upright and upside down look alike and give the same instrument geometry; the upright "
+                    f"labelling is used", "")
+        if ms_b >= self.settings.flip_ms_ratio * ms_a:
+            other = "upside-down" if _is_flipped(b[2]) else "upright"
+            return results, (f"; the {other} pose fits {np.sqrt(ms_b / ms_a):.1f} times worse (rms, all geometry "
+                             f"free); the object is not symmetric under turning it upside down "
+                             f"({d_sym * 1e6:.1f} um rms)"), ""
+        return results, "", (f"cannot tell whether the object is mounted upright or upside down: its centres are "
+                             f"symmetric under that turn to {d_sym * 1e6:.1f} um rms, which these frames do not "
+                             f"resolve (rms {np.sqrt(2 * ms_a):.3f} vs {np.sqrt(2 * ms_b):.3f} px with all geometry "
+                             f"free); mount it as its file says (sphere {self.ids[np.argmin(c[:, 1])]} at the "
+                             f"bottom) or use more frames")
+
+    def _full_fit_ms(self, frames, w, gate) -> float:
+        """Mean squared residual [px^2] of the matched detections with all 13 parameters free."""
+        fj, fi, sn = self._match_frames(frames, self._alphas, w, gate)
+        if len(fj) < 14:
+            return np.inf
+        obs = np.vstack([frames[j][i] for j, i in zip(fj, fi)])
+        alphas = self._alphas
+
+        def fun(x):
+            return (forward_srf(x, self.centres_of_m, alphas, self.detector)[fj, sn] - obs).ravel()
+
+        scale = np.array([1e-3, 1e-3, 1e-3, 1e-3, 1e-2, 1e-2, 1e-2, 1e-3, 1e-3, 1e-3, 1e-2, 1e-2, 1e-2])
+        sol = least_squares(fun, w, x_scale=scale, method="lm", max_nfev=400)
+        return float(np.mean(sol.fun ** 2))
+
+    def _diagnose(self, frames, alphas, srd_m) -> str:
+        """Why a pose search failed: try the frames mirrored and the rotation reversed."""
+        c0 = self.detector.cols - 1
+        r0 = self.detector.rows - 1
+        trials = (("the image mirrored left-right (columns)", [f * [-1, 1] + [c0, 0] for f in frames], alphas),
+                  ("the image mirrored top-bottom (rows)", [f * [1, -1] + [0, r0] for f in frames], alphas),
+                  ("the rotation direction reversed", frames, -np.asarray(alphas)))
+        found = []
+        for what, fr, al in trials:
+            probe = SphereIdentifier(self.ids, self.centres_of_m, 2 * self.radii_m, self.detector, self.sdd_m,
+                                     self.settings)
+            if probe.initialise(fr, al, srd_m, diagnose=False).success:
+                found.append(what)
+        self._w = None
+        if found:
+            return (f"the frames fit with {' or '.join(found)}: check image orientation / rotation direction "
+                    f"(INTERFACES.md: column index along +X of the detector, row 0 at the top)")
+        return ("check image orientation / rotation direction, the reference object file and the instrument's "
+                "SDD and pixel pitch (no mirrored or reversed variant fits either)")
+
+    def _unexplained(self, frames, pred, r_px, gate) -> int:
+        """Unmatched detections plus visible, isolated predicted spheres with no detection near."""
+        n_unmatched = 0
+        n_missing = 0
+        for j, f in enumerate(frames):
+            idx, _, _ = self._match(f, pred[j], r_px[j], gate)
+            n_unmatched += int(np.count_nonzero(idx < 0))
+            vis = self._in_view(pred[j], -r_px[j])
+            dd = np.linalg.norm(pred[j][:, None] - pred[j][None], axis=2)
+            np.fill_diagonal(dd, np.inf)
+            iso = vis & (dd.min(axis=1) > 2.0 * r_px[j] + self.settings.separation_margin_px)
+            if len(f):
+                near = np.linalg.norm(pred[j][:, None] - f[None], axis=2).min(axis=1)
+            else:
+                near = np.full(len(pred[j]), np.inf)
+            n_missing += int(np.count_nonzero(iso & (near > gate)))
+        return n_unmatched + n_missing
+
+    def initialise_tracked(self, previous_w, previous_srd_m: float, frames_centres_px, alphas_rad,
+                           srd_m: float) -> InitialisationResult:
+        """Identity at a new stage position from the pose found at the previous one.
+
+        The object sits on the rotary table: moving the stage carries it along the travel
+        without turning it (error motions are arcseconds and micrometres), so the previous
+        identification pose, moved by the change of the reported SRD along {SRF} Z, predicts
+        the new frames; it is refined on them (no pose search, so the labelling decided at the
+        first position is kept). Succeeds only when the refined pose explains the frames at
+        least as well as a pose search must (rms below the gate, 90 % of the detections
+        matched, at most 10 % unexplained: missed or rejected detections); the caller then falls
+        back to :meth:`initialise`.
+        """
+        frames = [_check_centres(f, "frames_centres_px[j]") for f in frames_centres_px]
+        alphas = np.asarray(alphas_rad, dtype=np.float64).reshape(-1)
+        if len(frames) == 0 or alphas.size != len(frames) or not np.all(np.isfinite(alphas)):
+            raise ValueError("need one finite alpha per frame and at least one frame")
+        w = np.asarray(previous_w, dtype=np.float64).copy()
+        if w.shape != (13,) or not np.all(np.isfinite(w)):
+            raise ValueError("previous_w must be 13 finite values")
+        if not (np.isfinite(srd_m) and 0 < srd_m < self.sdd_m and np.isfinite(previous_srd_m)):
+            raise ValueError(f"srd_m must be in (0, sdd), got {srd_m}")
+        self._geom, self._motion = None, None
+        self._shift, self._scale = np.zeros(2), 1.0
+        n_det = sum(len(f) for f in frames)
+        travel = float(srd_m) - float(previous_srd_m)
+        w[0] += travel          # the rotation axis ...
+        w[9] += travel          # ... and the object on it
+        r_nom = float(np.median(self.radii_m)) * (self.sdd_m / srd_m) / self.detector.pixel_pitch_m
+        coarse_gate = self.settings.coarse_gate_px or 2.0 * r_nom
+        w, res, n_match, nfev = self._refine(frames, alphas, w, coarse_gate)
+        gate = self._gate(w, alphas)
+        pred, r_px = self._raw_predict(alphas, w)
+        bad = self._unexplained(frames, pred, r_px, gate)
+        rms = float(np.sqrt(np.mean(res ** 2) * 2)) if res.size else np.nan
+        ok = bool(n_det >= 4 and res.size and rms < gate and n_match >= 0.9 * n_det and bad <= max(2, 0.10 * n_det))
+        msg = (f"{n_match} of {n_det} detections matched, rms {rms:.3f} px, {bad} unexplained, "
+               f"pose tracked from the previous stage position ({travel * 1e3:+.3f} mm)")
+        msg = ("pose found: " if ok else "pose tracking failed: ") + msg
+        self._w = w if ok else None
         return InitialisationResult(w, res, rms, n_match, n_det, 0.5 * float(np.sum(res ** 2)), ok, msg, nfev)
 
     @staticmethod
     def _score(frames, pred, gate):
-        score = 0.0
-        for j, f in enumerate(frames):
-            if len(f):
-                d = np.linalg.norm(f[:, None, :] - pred[j][None, :, :], axis=2).min(axis=1)
-                score += float(np.sum(np.minimum(d, gate) ** 2))
-        return score
+        """Truncated nearest-neighbour cost sum_i min(d_i, gate)^2 over all frames' detections."""
+        sizes = [len(f) for f in frames]
+        if not sum(sizes):
+            return 0.0
+        det = np.concatenate(frames)                                   # (D, 2)
+        fj = np.repeat(np.arange(len(frames)), sizes)
+        diff = det[:, None, :] - pred[fj]                              # (D, N, 2)
+        d2 = np.einsum("dnk,dnk->dn", diff, diff).min(axis=1)
+        return float(np.sum(np.minimum(d2, gate * gate)))
 
     def _refine(self, frames, alphas, w, coarse_gate):
         nfev = 0

@@ -166,7 +166,7 @@ class StaticResult:
             "names": list(self.names), "units": list(self.units), "x": self.x,
             "std": self.std, "covariance": self.covariance, "correlation": self.correlation,
             "variance_factor": self.variance_factor, "rms_px": self.rms_px, "cost": self.cost,
-            "success": self.success, "status": self.status, "message": self.message,
+            "success": self.success, **status_fields(self.success, self.outcome, self.status), "message": self.message,
             "nfev": self.nfev, "njev": self.njev, "n_iter": self.n_iter, "n_obs": self.n_obs,
             "n_views": self.n_views, "n_spheres": self.n_spheres, "condition": self.condition,
             "loss": self.loss, "f_scale_px": self.f_scale_px, "outcome": self.outcome,
@@ -181,6 +181,18 @@ class StaticResult:
 
 
 # --------------------------------------------------------------------------- inputs
+#: outcome word -> metro_msgs/SolveStatus code: the one status vocabulary (io/results.py OUTCOME_CODES)
+OUTCOME_CODES = {"success": 0, "not_converged": 1, "degenerate": 2, "insufficient_data": 3, "failed": 4,
+                 "poor_fit": 5}
+
+
+def status_fields(success: bool, outcome: str, lm_status: int) -> dict:
+    """Result-file status keys: ``status`` (outcome word), ``status_code`` (SolveStatus code), and the
+    optimiser's own code under ``lm_status`` (never next to ``success`` as ``status``)."""
+    word = "success" if success else (outcome if outcome in OUTCOME_CODES and outcome != "success" else "failed")
+    return {"status": word, "status_code": OUTCOME_CODES[word], "lm_status": int(lm_status)}
+
+
 def _check_inputs(obs, centres_of_m, detector, srd_m, sdd_m):
     if not isinstance(obs, CentreObservations):
         raise ValueError(f"obs must be a CentreObservations, got {type(obs).__name__}")

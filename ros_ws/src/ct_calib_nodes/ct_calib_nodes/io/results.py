@@ -38,7 +38,9 @@ def estimate_msg(res, model: str, stamp, frame_id: str = "ct_detector", n_reject
     m.values = [float(v) for v in res.x]
     cov = getattr(res, "covariance_total", None)
     cov = res.covariance if cov is None else cov
-    m.covariance = [float(v) for v in np.asarray(cov, dtype=float).ravel()] if cov is not None else []
+    # unknown covariance (failed solve: NaN) -> empty, as the message documents; never a block of NaNs
+    cov = None if cov is None else np.asarray(cov, dtype=float)
+    m.covariance = [float(v) for v in cov.ravel()] if cov is not None and cov.size and np.all(np.isfinite(cov)) else []
     s = m.status
     s.code = status_code(res)
     s.message = str(res.message)

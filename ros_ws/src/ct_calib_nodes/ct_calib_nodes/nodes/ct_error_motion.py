@@ -10,25 +10,33 @@ definition (ISO 230-1 geometry; sign: + = travelled less than indexed; see
 core/error_map.py). Uncertainties are the joint covariance over positions,
 including the static geometry's (shared by all positions) and, when
 ct_instrument.yaml gives it, the rotary indexing repeatability in u(yaw). Service ``~/solve`` re-runs
-the solves. With ``results_dir`` set, the results (JSON with units) are written
-there after every update (atomically).
+the solves (``what`` "" or "error_motion"; ``stage_position`` k >= 1 (0-based, 0 is the reference)
+returns that position's multi-projection motions, -1 the last solved position's).
+Topic names are relative: ``--ros-args -r __ns:=/cell_a`` moves the node into cell ``/cell_a``.
+Every final map (campaign complete or service request) is stored in the calibration history
+(parameter ``history_db``); at start the latest valid maps of the cell are re-published latched, and a
+map that is not SUCCESS never replaces a valid one.
 """
 
 from __future__ import annotations
 
 import time
 
+from builtin_interfaces.msg import Time
 from metro_msgs.msg import CtGeometry, ErrorMap, SphereObservationArray
 from metro_msgs.srv import TriggerSolve
 from rclpy.node import Node
 
 from ct_calib_nodes.core.ct_pipeline import campaign_error_map, solve_campaign_position, static_result_from_estimate
 from ct_calib_nodes.io.results import error_map_msg, estimate_msg, static_from_geometry_msg
+from ct_calib_nodes.nodes import plant
 from ct_calib_nodes.nodes.runner import (CT_FILE_PARAMS, QOS_LATCHED, QOS_RELIABLE_STREAM, ObservationIntake,
                                          declare_parameters, load_ct_files, run_node)
 
+KIND, MSG_TYPE = "ct_error_map", "metro_msgs/msg/ErrorMap"
 PARAMS = {
     **CT_FILE_PARAMS,
+    **plant.HISTORY_PARAMS,
     "idle_solve_s": (5.0, "solve the last position when no observation arrived for this long [s]; 0 = never"),
     "min_frames": (1, "fewest frames of a position before it is solved [count]"),
     "loss": ("linear", "least-squares loss: linear, huber, soft_l1, cauchy, arctan"),
@@ -46,25 +54,41 @@ class CtErrorMotion(Node):
         self.static = None
         self.results = {m: {} for m in MODES}        # mode -> {k: MotionResult}
         self.solved_frames = {m: {} for m in MODES}  # mode -> {k: n_frames at solve}
-        self.pubs = {"multi": self.create_publisher(ErrorMap, "/ct/error_map", QOS_LATCHED),
-                     "single": self.create_publisher(ErrorMap, "/ct/error_map/single", QOS_LATCHED)}
-        self.create_subscription(SphereObservationArray, "/ct/observations", self._on_obs, QOS_RELIABLE_STREAM)
-        self.create_subscription(CtGeometry, "/ct/geometry", self._on_geometry, QOS_LATCHED)
+        self.pubs = {"multi": self.create_publisher(ErrorMap, "ct/error_map", QOS_LATCHED),
+                     "single": self.create_publisher(ErrorMap, "ct/error_map/single", QOS_LATCHED)}
+        self.create_subscription(SphereObservationArray, "ct/observations", self._on_obs, QOS_RELIABLE_STREAM)
+        self.create_subscription(CtGeometry, "ct/geometry", self._on_geometry, QOS_LATCHED)
         self.create_service(TriggerSolve, "~/solve", self._on_solve)
         self.create_timer(0.5, self._on_timer)
+        self.history = plant.HistoryHook(self, str(self.p["history_db"]))
+        self.valid = {m: None for m in MODES}         # mode -> the valid ErrorMap message published
+        self.valid_campaign = {}
+        self.last_map_status, self.last_solve_t, self.stored_key = None, None, {}
+        self.obs_rate = plant.RateMeter()
+        from ct_calib_nodes.io.campaign_guard import CampaignGuard  # noqa: PLC0415
+        self.guard = CampaignGuard(self.history.cell)
+        for mode in MODES:
+            rec, msg = self.history.latest_msg(KIND, ErrorMap, MSG_TYPE, mode=mode)
+            if msg is not None:
+                self.valid[mode] = msg
+                self.pubs[mode].publish(msg)
+                self.get_logger().info(f"re-published the latest valid {mode} error map of cell {self.history.cell}: "
+                                       f"history solve {rec.id} of {rec.created_utc}")
+        self.diagnostics = plant.Diagnostics(self, self.diagnose)
 
     def _on_geometry(self, msg):
         try:
             w, cov, _geom, code = static_from_geometry_msg(msg, self.ref.centres_of_m)
         except ValueError as exc:
             self.intake.bad_messages += 1
-            self.get_logger().warning(f"skipped bad /ct/geometry: {exc}")
+            self.get_logger().warning(f"skipped bad ct/geometry: {exc}")
             return
         if code != 0:
             self.get_logger().error(f"static geometry is not usable (status {code}: {msg.static_estimate.status.message}); "
                                     "error motions wait for a usable one")
             return
         self.static_msg = (w, cov, float(msg.static_estimate.status.rms_residual))
+        self.static_stamp_ns = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
         self.static = self._rebuild_static()
         self.results = {m: {} for m in MODES}
         self.solved_frames = {m: {} for m in MODES}
@@ -81,7 +105,12 @@ class CtErrorMotion(Node):
                                            centre_uncertainty_m=self.ref.center_uncertainty_m)
 
     def _on_obs(self, msg):
+        self.obs_rate.tick()
+        if self._refused(msg):
+            return
         k = self.intake.add(msg)
+        if k is not None:
+            self._accepted(msg)
         if k is not None and k >= 2 and k == len(self.acc.positions) - 1 and self.acc.positions[k].n_frames == 1:
             self._solve_complete(final=False)      # position k-1 just completed
 
@@ -120,28 +149,130 @@ class CtErrorMotion(Node):
                     f"{'ok' if res.success else 'NOT USABLE: ' + res.message}; rms {res.rms_px:.4f} px; "
                     f"dz = {res.x[2] * 1e3:.4f} mm; {1e3 * (time.perf_counter() - t0):.0f} ms")
         if changed:
-            self._publish()
+            self._publish(final)
 
-    def _publish(self):
-        stamp = self.get_clock().now().to_msg()
+    def _publish(self, final: bool = False):
+        from ct_calib_nodes.io.ct_history import map_status  # noqa: PLC0415
+
+        # stamp: when the data the map rests on ended (the last frame of the positions solved)
+        last_ns = max(max(p.stamps_ns) for p in self.acc.positions if p.stamps_ns)
+        stamp = Time(sec=last_ns // 1_000_000_000, nanosec=last_ns % 1_000_000_000)
         for mode in MODES:
             if not self.results[mode]:
                 continue
             em, ks = campaign_error_map(self.acc, self.results[mode], self.static, definition="travel", name=mode,
                                         index_repeatability_rad=self.instrument.index_repeatability_rad)
             motions = [estimate_msg(self.results[mode][k], f"ct_error_motion/{mode}", stamp) for k in ks[1:]]
-            self.pubs[mode].publish(error_map_msg(em, mode, motions, stamp))
+            msg = error_map_msg(em, mode, motions, stamp)
+            # which geometry the map rests on, its campaign, and whether it is final (the message has no fields
+            # for these: notes every consumer reads)
+            msg.notes.append(f"geometry: ct/geometry stamp {self.static_stamp_ns} ns; campaign "
+                             f"{self.guard.campaign_id}; positions {len(ks)}; final: {'yes' if final else 'no (growing)'}")
+            status, text = map_status({k: self.results[mode][k] for k in ks[1:]})
+            if mode == "multi":
+                self.last_map_status, self.last_solve_t = (status, text), time.monotonic()
+            if not final and self.valid[mode] is not None and self.valid_campaign.get(mode) == self.guard.campaign_id:
+                pass   # this campaign's final map is out: a re-solve never re-publishes a shorter, growing one
+            elif status == "success" or self.valid[mode] is None:
+                self.pubs[mode].publish(msg)
+                if status == "success" and final:
+                    self.valid[mode], self.valid_campaign[mode] = msg, self.guard.campaign_id
+            else:
+                self.get_logger().error(f"{mode} error map not usable ({text}): not published; the last valid map "
+                                        "stays latched")
+            if final:
+                self._store(em, ks, mode, status, text, msg)
         self.get_logger().info(f"error map updated: {len(self.results['multi'])} position(s) solved")
 
+    def _store(self, em, ks, mode, status, text, msg):
+        key = (mode, tuple((k, self.solved_frames[mode].get(k)) for k in ks))
+        if self.stored_key.get(mode) == key:       # the same final map: stored once
+            return
+        from ct_calib_nodes.io import ct_files  # noqa: PLC0415
+        from ct_calib_nodes.io.ct_history import error_map_record, yaml_inputs  # noqa: PLC0415
+
+        files = {"instrument": self.p["instrument_file"] or ct_files.default_instrument_path(),
+                 "reference_object": self.p["reference_object_file"] or ct_files.default_reference_object_path()}
+        stamps = [t for p in self.acc.positions for t in p.stamps_ns]
+        from ct_calib_nodes.io.history import Input  # noqa: PLC0415
+        upstream = Input(role="upstream", path=self.resolve_topic_name("ct/geometry"),
+                         detail={"kind": "ct_geometry", "stamp_ns": self.static_stamp_ns})
+        rec = error_map_record(em, mode, status=status, message=text, cell=self.history.cell, source="live",
+                               inputs=yaml_inputs(files) + [upstream], campaign_id=self.guard.campaign_id, data_start_ns=min(stamps), data_end_ns=max(stamps),
+                               positions=ks)
+        if self.history.store(rec, msg, MSG_TYPE) is not None:
+            self.stored_key[mode] = key
+
+    def diagnose(self):
+        values = {"observation messages": self.obs_rate.total, "observation rate [1/s]": self.obs_rate.rate(),
+                  "bad messages": self.intake.bad_messages, "positions held": len(self.acc.positions),
+                  "positions solved (multi)": len(self.results["multi"]),
+                  "static geometry": "received" if self.static is not None else "waiting",
+                  "last map": "none" if self.last_map_status is None else ": ".join(self.last_map_status),
+                  "last solve age": plant.solve_age_text(self.last_solve_t),
+                  "valid map published": "yes" if self.valid["multi"] is not None else "no",
+                  "campaign": self.guard.campaign_id or "none", "refused (interleaved campaign)": self.guard.refused}
+        if self.last_map_status is not None and self.last_map_status[0] != "success":
+            return (plant.WARN if self.valid["multi"] is not None else plant.ERROR,
+                    f"last error map not usable: {self.last_map_status[1]}", values)
+        if self.static is None:
+            return plant.WARN, "waiting for a usable static geometry", values
+        if self.intake.bad_messages or self.guard.refused:
+            return plant.WARN, (f"{self.intake.bad_messages} bad message(s) skipped, {self.guard.refused} refused "
+                                "as another campaign"), values
+        return plant.OK, "running", values
+
+    def _refused(self, msg) -> bool:
+        """Observations of another campaign interleaved with this one: refused, counted, logged."""
+        from ct_calib_nodes.io.convert import stamp_ns  # noqa: PLC0415
+
+        try:
+            why = self.guard.check(stamp_ns(msg.header.stamp), msg.srd_reported_m, msg.rotary_angle_rad)
+        except (TypeError, ValueError):
+            return False           # the intake names what is wrong with the message
+        if why is not None:
+            if self.guard.refused <= 5 or self.guard.refused % 50 == 0:
+                self.get_logger().error(f"refused observations #{self.guard.refused}: {why}")
+            return True
+        return False
+
+    def _accepted(self, msg):
+        from ct_calib_nodes.io.convert import stamp_ns  # noqa: PLC0415
+
+        self.guard.accept(stamp_ns(msg.header.stamp), msg.srd_reported_m, msg.rotary_angle_rad)
+
+    def close(self):
+        self.history.close()
+
     def _on_solve(self, request, response):
+        what = str(request.what or "").strip()
+        if what not in ("", "error_motion"):
+            response.accepted = False
+            response.message = (f"this node solves error motions (what 'error_motion' or ''), not {what!r}; "
+                                "the static geometry is solved by ct_geometry_solver's ~/solve")
+            return response
         if request.discard_previous:
             self.solved_frames = {m: {} for m in MODES}
         if self.static is None:
-            response.accepted, response.message = False, "no usable static geometry on /ct/geometry yet"
+            response.accepted, response.message = False, "no usable static geometry on ct/geometry yet"
             return response
         self._solve_complete(final=True)
-        response.accepted = bool(self.results["multi"])
-        response.message = f"{len(self.results['multi'])} position(s) solved"
+        k = int(request.stage_position)
+        solved = self.results["multi"]
+        if k >= 0 and k not in solved:
+            response.accepted = False
+            response.message = (f"stage position {k} has no error-motion solve (solved: {sorted(solved)}; "
+                                "0 is the reference position)")
+            return response
+        if not solved:
+            response.accepted, response.message = False, "no position solved yet"
+            return response
+        k = max(solved) if k < 0 else k
+        last_ns = max(self.acc.positions[k].stamps_ns)
+        stamp = Time(sec=last_ns // 1_000_000_000, nanosec=last_ns % 1_000_000_000)
+        response.result = estimate_msg(solved[k], "ct_error_motion/multi", stamp)
+        response.accepted = True
+        response.message = f"{len(solved)} position(s) solved; result: position {k}"
         return response
 
 

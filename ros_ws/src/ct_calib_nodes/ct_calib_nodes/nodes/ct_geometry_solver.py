@@ -18,11 +18,30 @@ from rclpy.node import Node
 
 from ct_calib_nodes.core.ct_pipeline import solve_campaign_static
 from ct_calib_nodes.io.results import geometry_msg
+from ct_calib_nodes.nodes import plant
 from ct_calib_nodes.nodes.runner import (CT_FILE_PARAMS, QOS_LATCHED, QOS_RELIABLE_STREAM, ObservationIntake,
                                          declare_parameters, load_ct_files, run_node)
 
+KIND, MSG_TYPE = "ct_geometry", "metro_msgs/msg/CtGeometry"
+STATUS_NAMES = {0: "SUCCESS", 1: "NOT_CONVERGED", 2: "DEGENERATE", 3: "INSUFFICIENT_DATA", 4: "FAILED", 5: "POOR_FIT"}
+
+
+def time_from_ns(ns):
+    from builtin_interfaces.msg import Time  # noqa: PLC0415
+
+    return Time(sec=int(ns) // 1_000_000_000, nanosec=int(ns) % 1_000_000_000)
+
+
+def plant_input_topic(topic, pos):
+    from ct_calib_nodes.io.history import Input  # noqa: PLC0415
+
+    return Input(role="topic", path=topic, detail={"frames": pos.n_frames, "first_stamp_ns": min(pos.stamps_ns),
+                                                   "last_stamp_ns": max(pos.stamps_ns)})
+
+
 PARAMS = {
     **CT_FILE_PARAMS,
+    **plant.HISTORY_PARAMS,
     "idle_solve_s": (3.0, "solve the first position when no observation arrived for this long [s]; 0 = never"),
     "min_frames": (3, "fewest frames of the first position before a solve is attempted [count]"),
     "loss": ("linear", "least-squares loss: linear, huber, soft_l1, cauchy, arctan"),
@@ -38,15 +57,32 @@ class CtGeometrySolver(Node):
         self.acc = self.intake.acc
         self.solved_n_frames = -1
         self.result = None
-        self.pub = self.create_publisher(CtGeometry, "/ct/geometry", QOS_LATCHED)
-        self.create_subscription(SphereObservationArray, "/ct/observations", self._on_obs, QOS_RELIABLE_STREAM)
+        self.pub = self.create_publisher(CtGeometry, "ct/geometry", QOS_LATCHED)
+        self.create_subscription(SphereObservationArray, "ct/observations", self._on_obs, QOS_RELIABLE_STREAM)
         self.create_service(TriggerSolve, "~/solve", self._on_solve)
         self.create_timer(0.5, self._on_timer)
-        self.get_logger().info(f"waiting for /ct/observations ({self.ref.n_spheres} spheres, "
+        self.history = plant.HistoryHook(self, str(self.p["history_db"]))
+        self.valid_msg, self.last_status, self.last_solve_t = None, None, None
+        self.obs_rate = plant.RateMeter()
+        from ct_calib_nodes.io.campaign_guard import CampaignGuard  # noqa: PLC0415
+        self.guard = CampaignGuard(self.history.cell)
+        rec, msg = self.history.latest_msg(KIND, CtGeometry, MSG_TYPE)
+        if msg is not None:      # a late subscriber or a restart never sees "no calibration"
+            self.valid_msg = msg
+            self.pub.publish(msg)
+            self.get_logger().info(f"re-published the latest valid calibration of cell {self.history.cell}: "
+                                   f"history solve {rec.id} of {rec.created_utc} (campaign {rec.campaign_id})")
+        self.diagnostics = plant.Diagnostics(self, self.diagnose)
+        self.get_logger().info(f"waiting for {self.resolve_topic_name('ct/observations')} ({self.ref.n_spheres} spheres, "
                                f"{self.instrument.detector.cols}x{self.instrument.detector.rows} px)")
 
     def _on_obs(self, msg):
+        self.obs_rate.tick()
+        if self._refused(msg):
+            return
         k = self.intake.add(msg)
+        if k is not None:
+            self._accepted(msg)
         if k is not None and k >= 1 and self.result is None:
             self._solve("the stage moved to position 2")
 
@@ -67,14 +103,80 @@ class CtGeometrySolver(Node):
                                     centre_uncertainty_m=self.ref.center_uncertainty_m)
         dt = time.perf_counter() - t0
         self.result, self.solved_n_frames = res, p0.n_frames
+        # EstimateStamped: the stamp is when the data the estimate rests on ended (the last frame used)
         msg = geometry_msg(res, p0.srd_reported_m, self.instrument.sdd_reported_m, self.instrument.detector,
-                           self.get_clock().now().to_msg(), n_rejected=p0.n_rejected)
-        self.pub.publish(msg)
+                           time_from_ns(max(p0.stamps_ns)), n_rejected=p0.n_rejected)
+        self.last_msg = msg
+        if res.success or self.valid_msg is None:
+            self.pub.publish(msg)
+            if res.success:
+                self.valid_msg = msg
+        else:
+            self.get_logger().error("the new geometry is not usable: not published; the last valid calibration "
+                                    f"(stamp {self.valid_msg.header.stamp.sec} s) stays on ct/geometry")
+        self.last_status, self.last_solve_t = msg.static_estimate.status, time.monotonic()
+        self._store(res, msg, p0)
         log = self.get_logger().info if res.success else self.get_logger().error
         log(f"static geometry ({why}): {'converged' if res.success else 'NOT USABLE'}: {res.message}; "
             f"{p0.n_frames} frames, {res.n_obs} centres, rms {res.rms_px:.4f} px, {dt * 1e3:.0f} ms; "
             f"z_R = {res.x[0] * 1e3:.3f} mm, z_D = {res.x[3] * 1e3:.3f} mm")
         return res, res.message
+
+    def _store(self, res, msg, p0):
+        from ct_calib_nodes.io import ct_files  # noqa: PLC0415
+        from ct_calib_nodes.io.ct_history import geometry_record, yaml_inputs  # noqa: PLC0415
+
+        files = {"instrument": self.p["instrument_file"] or ct_files.default_instrument_path(),
+                 "reference_object": self.p["reference_object_file"] or ct_files.default_reference_object_path()}
+        topic = self.resolve_topic_name("ct/observations")
+        inputs = yaml_inputs(files) + [plant_input_topic(topic, p0)]
+        rec = geometry_record(res, cell=self.history.cell, source="live", inputs=inputs,
+                              campaign_id=self.guard.campaign_id,
+                              data_start_ns=min(p0.stamps_ns), data_end_ns=max(p0.stamps_ns),
+                              extra={"frames": p0.n_frames, "srd_reported_m": p0.srd_reported_m})
+        self.history.store(rec, msg, MSG_TYPE)
+
+    def diagnose(self):
+        held = self.acc.positions[0].n_frames if self.acc.positions else 0
+        values = {"observation messages": self.obs_rate.total, "observation rate [1/s]": self.obs_rate.rate(),
+                  "bad observation messages": self.intake.bad_messages, "frames held (position 1)": held,
+                  "last solve": "none" if self.last_status is None else
+                  f"{STATUS_NAMES.get(self.last_status.code, self.last_status.code)}: {self.last_status.message}",
+                  "last solve age": plant.solve_age_text(self.last_solve_t),
+                  "valid calibration published": "yes" if self.valid_msg is not None else "no",
+                  "campaign": self.guard.campaign_id or "none", "refused (interleaved campaign)": self.guard.refused}
+        if self.last_status is not None and self.last_status.code != 0:
+            lvl = plant.WARN if self.valid_msg is not None else plant.ERROR
+            return lvl, ("last solve not usable; the previous valid calibration stays published"
+                         if self.valid_msg is not None else "no usable calibration: last solve failed"), values
+        if self.valid_msg is None:
+            return plant.WARN, "no calibration yet: waiting for observations", values
+        if self.intake.bad_messages or self.guard.refused:
+            return plant.WARN, (f"calibration valid; {self.intake.bad_messages} bad observation message(s) skipped, "
+                                f"{self.guard.refused} refused as another campaign"), values
+        return plant.OK, "calibration valid", values
+
+    def _refused(self, msg) -> bool:
+        """Observations of another campaign interleaved with this one: refused, counted, logged."""
+        from ct_calib_nodes.io.convert import stamp_ns  # noqa: PLC0415
+
+        try:
+            why = self.guard.check(stamp_ns(msg.header.stamp), msg.srd_reported_m, msg.rotary_angle_rad)
+        except (TypeError, ValueError):
+            return False           # the intake names what is wrong with the message
+        if why is not None:
+            if self.guard.refused <= 5 or self.guard.refused % 50 == 0:
+                self.get_logger().error(f"refused observations #{self.guard.refused}: {why}")
+            return True
+        return False
+
+    def _accepted(self, msg):
+        from ct_calib_nodes.io.convert import stamp_ns  # noqa: PLC0415
+
+        self.guard.accept(stamp_ns(msg.header.stamp), msg.srd_reported_m, msg.rotary_angle_rad)
+
+    def close(self):
+        self.history.close()
 
     def _on_solve(self, request, response):
         if request.discard_previous:
@@ -86,13 +188,8 @@ class CtGeometrySolver(Node):
         response.accepted = res is not None
         response.message = text
         if res is not None:
-            response.result = self._last_msg_estimate()
+            response.result = self.last_msg.static_estimate     # exactly what the topic carries
         return response
-
-    def _last_msg_estimate(self):
-        p0 = self.acc.positions[0]
-        return geometry_msg(self.result, p0.srd_reported_m, self.instrument.sdd_reported_m,
-                            self.instrument.detector, self.get_clock().now().to_msg()).static_estimate
 
 
 def main(args=None):

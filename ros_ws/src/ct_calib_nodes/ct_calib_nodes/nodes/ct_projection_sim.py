@@ -8,6 +8,12 @@ is the reference object's spheres on their carbon-fibre support tube
 (``support_tube``; the tube is not in reference_object.yaml). The truth
 (geometry, error motions) never goes on a topic; it can be written to a file
 for tests and for a simulated independent reference measurement.
+
+Start: the campaign begins once both raw topics have ``wait_for_subscribers``
+subscribers (a detector and a recorder started by hand: 2), and, with
+``wait_for_start`` true, once service ``~/start`` (std_srvs/Trigger) was called;
+calling ``~/start`` also starts a campaign still waiting for subscribers
+(the operator's override). Topic names are relative (``__ns`` moves the cell).
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import numpy as np
 import rclpy
 from rclpy.node import Node
 from sensor_msgs.msg import Image, JointState
+from std_srvs.srv import Trigger
 
 from ct_calib_nodes.core.phantom import CarbonTube
 from ct_calib_nodes.core.render import RenderSettings, render_projection
@@ -38,7 +45,8 @@ PARAMS = {
     "encoding": ("mono16", "frame encoding: mono16 (counts) or 32FC1 (transmission I/I0)"),
     "seed": (20201, "random seed of the photon noise [-]"),
     "wait_for_subscribers": (1, "start only when both raw topics have this many subscribers [count]"),
-    "wait_timeout_s": (60.0, "give up waiting for subscribers after this long [s]"),
+    "wait_timeout_s": (60.0, "give up waiting for subscribers (and the start call) after this long [s]; 0 = never"),
+    "wait_for_start": (False, "also wait for a call of the ~/start service (std_srvs/Trigger) [-]"),
     "exit_when_done": (True, "end the process after the last frame"),
     "truth_output": ("", "write the simulation truth here (YAML; for tests, never read by solvers) [path]"),
     "reference_output": ("", "write a simulated independent reference error map here (CSV) [path]"),
@@ -94,8 +102,8 @@ class CtProjectionSim(Node):
         if p["reference_output"]:
             write_reference_error_map(p["reference_output"], self.truth)
         self.rng = np.random.default_rng(int(p["seed"]))
-        self.pub_img = self.create_publisher(Image, "/ct/detector/image", QOS_RELIABLE_STREAM)
-        self.pub_js = self.create_publisher(JointState, "/ct/stage/joint_states", QOS_RELIABLE_STREAM)
+        self.pub_img = self.create_publisher(Image, "ct/detector/image", QOS_RELIABLE_STREAM)
+        self.pub_js = self.create_publisher(JointState, "ct/stage/joint_states", QOS_RELIABLE_STREAM)
         n = int(p["projections_per_position"])
         if n < 1:
             raise ValueError("projections_per_position must be >= 1")
@@ -106,6 +114,11 @@ class CtProjectionSim(Node):
         self.t_wait = time.monotonic()
         period = 1.0 / p["rate_hz"] if p["rate_hz"] > 0 else 0.001
         self.timer = self.create_timer(period, self._tick)
+        self.start_requested = False
+        self.create_service(Trigger, "~/start", self._on_start)
+        self.last_wait_log = 0.0
+        from ct_calib_nodes.nodes import plant  # noqa: PLC0415
+        self.diagnostics = plant.Diagnostics(self, self.diagnose)
         self.get_logger().info(
             f"campaign: {len(self.truth.srd_reported_m)} positions x {n} projections, "
             f"SRD {self.truth.srd_reported_m[0]*1e3:.1f}..{self.truth.srd_reported_m[-1]*1e3:.1f} mm, "
@@ -115,13 +128,23 @@ class CtProjectionSim(Node):
         if self.t_start is None:
             # both raw topics: a recorder matches them one after the other
             subs = min(self.pub_img.get_subscription_count(), self.pub_js.get_subscription_count())
-            if subs < int(self.p["wait_for_subscribers"]):
-                if time.monotonic() - self.t_wait > float(self.p["wait_timeout_s"]):
-                    self.get_logger().error(f"only {subs} subscriber(s) after {self.p['wait_timeout_s']} s; giving up")
+            need = int(self.p["wait_for_subscribers"])
+            ready = self.start_requested or (subs >= need and not self.p["wait_for_start"])
+            if not ready:
+                waited = time.monotonic() - self.t_wait
+                what = (f"{subs} of {need} subscriber(s) on both raw topics"
+                        + ("; waiting for a call of ~/start" if self.p["wait_for_start"] else ""))
+                if float(self.p["wait_timeout_s"]) > 0 and waited > float(self.p["wait_timeout_s"]):
+                    self.get_logger().error(f"not started after {self.p['wait_timeout_s']} s ({what}); giving up")
                     self.exit_code = 3
                     rclpy.try_shutdown()
+                elif waited - self.last_wait_log >= 5.0:
+                    self.last_wait_log = waited
+                    self.get_logger().info(f"waiting to start: {what}")
                 return
             self.t_start = time.monotonic()
+            self.get_logger().info(f"starting the campaign ({subs} subscriber(s)"
+                                   f"{', start requested' if self.start_requested else ''})")
         if self.sent >= len(self.queue):
             return
         k, j = self.queue[self.sent]
@@ -143,6 +166,26 @@ class CtProjectionSim(Node):
             self.get_logger().info(f"campaign complete: {self.sent} frames in {time.monotonic() - self.t_start:.1f} s")
             if self.p["exit_when_done"]:
                 self._finish()
+
+    def _on_start(self, _request, response):
+        if self.t_start is not None:
+            response.success, response.message = False, f"already running: {self.sent}/{len(self.queue)} frames sent"
+        else:
+            self.start_requested = True
+            response.success, response.message = True, "campaign starts"
+        return response
+
+    def diagnose(self):
+        from ct_calib_nodes.nodes import plant  # noqa: PLC0415
+
+        subs = min(self.pub_img.get_subscription_count(), self.pub_js.get_subscription_count())
+        values = {"frames sent": self.sent, "frames in campaign": len(self.queue), "subscribers": subs}
+        if self.t_start is None:
+            return plant.OK, "waiting to start", values
+        values["frame rate [1/s]"] = self.sent / max(time.monotonic() - self.t_start, 1e-9)
+        if self.sent >= len(self.queue):
+            return plant.OK, "campaign complete", values
+        return plant.OK, "publishing the campaign", values
 
     def _finish(self):
         """End the process only once every subscriber acknowledged every frame (reliable QoS):

@@ -8,6 +8,14 @@ and rejected spheres with reasons, is published on ``/ct/observations``
 initialised from the frames of each stage position themselves (the first
 ``init_frames`` of a position are published together once it is). Bad frames and
 unpaired messages are logged, counted and skipped; the node keeps running.
+
+Keeping up: the node measures its processing time per frame and the interval
+between frame stamps (both smoothed); when it processes slower than frames come,
+every such frame is counted (``falling_behind`` in the counts) and a warning
+(at most every 10 s) gives both rates. Detection costs about 40 ms per 1024^2
+frame on a free core (tests/benchmarks/bench_ct_detect.py), so a real CT's
+10 frames/s at 1024^2 is kept up with; at 2048^2 (about 4 times the pixels)
+3 frames/s is.
 """
 
 from __future__ import annotations
@@ -19,15 +27,16 @@ from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Image, JointState
 
-from ct_calib_nodes.core.ct_pipeline import FrameProcessor
+from ct_calib_nodes.core.ct_pipeline import FrameProcessor, FrameRateMonitor
 from ct_calib_nodes.core.detect import FrameError
 from ct_calib_nodes.io.convert import MessageError, array_from_image, stage_from_joint_state, stamp_ns
 from ct_calib_nodes.io.observations_out import observation_array_msg
-from ct_calib_nodes.nodes.runner import (CT_FILE_PARAMS, QOS_RELIABLE_STREAM, declare_parameters,
+from ct_calib_nodes.nodes.runner import (CT_FILE_PARAMS, POSITION_PARAMS, QOS_RELIABLE_STREAM, declare_parameters,
                                          load_ct_files, run_node)
 
 PARAMS = {
     **CT_FILE_PARAMS,
+    **POSITION_PARAMS,
     "init_frames": (6, "frames used to initialise sphere identity at each stage position [count]"),
     "pair_timeout_s": (120.0, "drop an image or stage reading left unpaired this long [s]"),
     "reliable": (True, "reliable subscriptions (complete campaigns); false = sensor-data QoS for best-effort drivers"),
@@ -41,20 +50,29 @@ class CtSphereDetector(Node):
         self.instrument, self.ref = load_ct_files(p, self.get_logger())
         self.proc = FrameProcessor(self.ref, self.instrument.detector, self.instrument.sdd_reported_m,
                                    self.instrument.flat_field(), init_frames=int(p["init_frames"]),
-                                   dark=self.instrument.dark)
+                                   srd_tolerance_m=float(p["position_tolerance_m"]), dark=self.instrument.dark)
         self.images, self.stages = {}, {}     # stamp_ns -> (msg, arrival time)
-        self.counts = {"frames": 0, "bad_frames": 0, "bad_stage": 0, "unpaired": 0, "published": 0}
+        self.counts = {"frames": 0, "bad_frames": 0, "bad_stage": 0, "unpaired": 0, "published": 0,
+                       "falling_behind": 0}
+        self.rate = FrameRateMonitor()
+        self._last_lag_warning = -1e9
         qos = QOS_RELIABLE_STREAM if p["reliable"] else qos_profile_sensor_data
-        self.pub = self.create_publisher(SphereObservationArray, "/ct/observations", QOS_RELIABLE_STREAM)
-        self.create_subscription(Image, "/ct/detector/image", self._on_image, qos)
-        self.create_subscription(JointState, "/ct/stage/joint_states", self._on_stage, qos)
+        self.pub = self.create_publisher(SphereObservationArray, "ct/observations", QOS_RELIABLE_STREAM)
+        self.create_subscription(Image, "ct/detector/image", self._on_image, qos)
+        self.create_subscription(JointState, "ct/stage/joint_states", self._on_stage, qos)
         self.create_timer(1.0, self._expire)
+        from ct_calib_nodes.nodes import plant  # noqa: PLC0415
+        self.rates = {"image": plant.RateMeter(), "stage": plant.RateMeter()}
+        self.last_counts = dict(self.counts)
+        self.diagnostics = plant.Diagnostics(self, self.diagnose)
 
     def _on_image(self, msg):
+        self.rates["image"].tick()
         self.images[stamp_ns(msg.header.stamp)] = (msg, time.monotonic())
         self._pair(stamp_ns(msg.header.stamp))
 
     def _on_stage(self, msg):
+        self.rates["stage"].tick()
         self.stages[stamp_ns(msg.header.stamp)] = (msg, time.monotonic())
         self._pair(stamp_ns(msg.header.stamp))
 
@@ -70,9 +88,11 @@ class CtSphereDetector(Node):
             self.counts["bad_stage"] += 1
             self.get_logger().warning(f"frame {t}: skipped, bad stage reading: {exc}")
             return
+        c0 = time.monotonic()
         try:
             image, enc = array_from_image(img, (self.instrument.detector.rows, self.instrument.detector.cols))
             results = self.proc.push(t, image, enc, alpha, srd)
+            self._keep_up(t, time.monotonic() - c0)
         except (MessageError, FrameError) as exc:
             self.counts["bad_frames"] += 1
             self.get_logger().warning(f"frame {t}: skipped ({self.counts['bad_frames']} bad so far): {exc}")
@@ -83,6 +103,18 @@ class CtSphereDetector(Node):
             return
         for fr in results:
             self._publish(fr)
+
+    def _keep_up(self, stamp, seconds):
+        if not self.rate.add(stamp, seconds):
+            return
+        self.counts["falling_behind"] += 1
+        now = time.monotonic()
+        if now - self._last_lag_warning >= 10.0:
+            self._last_lag_warning = now
+            self.get_logger().warning(
+                f"falling behind: processing {self.rate.processing_hz:.1f} frames/s but frames come at "
+                f"{self.rate.arrival_hz:.1f} frames/s (stamps); {self.counts['falling_behind']} frame(s) so far "
+                f"processed slower than they came (queued, or dropped by best-effort QoS)")
 
     def _publish(self, fr):
         from builtin_interfaces.msg import Time  # noqa: PLC0415
@@ -103,10 +135,37 @@ class CtSphereDetector(Node):
                 self.counts["unpaired"] += 1
                 self.get_logger().warning(f"dropped unpaired {what} stamped {t} ns (no partner within {limit} s)")
 
+    def diagnose(self):
+        from ct_calib_nodes.nodes import plant  # noqa: PLC0415
+
+        c = self.counts
+        values = {"image rate [1/s]": self.rates["image"].rate(), "stage rate [1/s]": self.rates["stage"].rate(),
+                  "frames": c["frames"], "published": c["published"], "bad frames": c["bad_frames"],
+                  "bad stage readings": c["bad_stage"], "unpaired dropped": c["unpaired"],
+                  "queue: images waiting for a stage reading": len(self.images),
+                  "queue: stage readings waiting for an image": len(self.stages)}
+        new = {k: c[k] - self.last_counts.get(k, 0) for k in ("bad_frames", "bad_stage", "unpaired")}
+        self.last_counts = dict(c)
+        if any(new.values()):
+            return plant.WARN, ("in the last second: " + ", ".join(f"{v} {k.replace('_', ' ')}" for k, v in new.items()
+                                                                    if v)), values
+        if len(self.images) + len(self.stages) > 50:
+            return plant.WARN, f"{len(self.images) + len(self.stages)} messages wait for their partner", values
+        return plant.OK, "running" if c["frames"] else "waiting for frames", values
+
     def close(self):
-        for fr in self.proc.flush():
-            self._publish(fr)
-        self.get_logger().info(f"detector counts: {self.counts}")
+        pending = self.proc.flush()
+        lost = 0
+        for fr in pending:
+            try:
+                self._publish(fr)
+            except Exception:  # noqa: BLE001 - the context is already shut down (Ctrl-C): nothing can be sent
+                lost += 1
+        msg = f"detector counts: {self.counts}"
+        if lost:
+            msg += (f"; {lost} frame(s) still held for identity initialisation were not published "
+                    "(stopped before the position completed)")
+        print(f"[ct_sphere_detector] {msg}", flush=True)
 
 
 def main(args=None):

@@ -18,7 +18,8 @@ output : str
     ``.mcap`` file or rosbag2 directory to create [path].
 topics : string array
     Topics to record; empty = every topic that appears (except /rosout and
-    /parameter_events).
+    /parameter_events); in a namespace (``__ns:=/cell_a``): every topic under
+    it. Relative names resolve against the namespace (``ct/detector/image``).
 discovery_period_s : double
     How often to look for new topics [s].
 compression : str
@@ -57,17 +58,22 @@ class McapRecorder(Node):
         super().__init__("mcap_recorder")
         p = declare_parameters(self, PARAMS)
         output = p["output"]
-        self.wanted = {t for t in p["topics"] if t}
+        self.wanted = {self.resolve_topic_name(t) for t in p["topics"] if t}
+        ns = self.get_namespace()
+        self.prefix = "" if ns in ("", "/") else ns.rstrip("/") + "/"   # a cell's recorder records its cell
         comp = p["compression"]
         self.writer = Rosbag2McapWriter(output, compression="" if comp == "none" else comp)
         self.subs = {}
         self.timer = self.create_timer(float(p["discovery_period_s"]), self._discover)
         self._discover()
-        self.get_logger().info(f"recording {sorted(self.wanted) if self.wanted else 'all topics'} to {output}")
+        self.get_logger().info(f"recording {sorted(self.wanted) if self.wanted else 'all topics'}"
+                               f"{' under ' + self.prefix if self.prefix and not self.wanted else ''} to {output}")
 
     def _discover(self):
         for topic, types in self.get_topic_names_and_types():
             if topic in self.subs or topic in IGNORED or (self.wanted and topic not in self.wanted):
+                continue
+            if not self.wanted and self.prefix and not topic.startswith(self.prefix):
                 continue
             pubs = self.get_publishers_info_by_topic(topic)
             if not pubs or len(types) != 1:

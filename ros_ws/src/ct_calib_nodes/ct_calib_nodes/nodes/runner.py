@@ -79,15 +79,33 @@ def load_ct_files(p: dict, logger=None):
     return instrument, ref
 
 
+POSITION_PARAMS = {
+    "position_tolerance_m": (1e-4, "a reported SRD further than this from the current stage position's readings "
+                                   "(their median) starts a new position; above the read-back jitter, below the "
+                                   "smallest stage step [m]"),
+}
+
+
+def position_tolerance(node) -> float:
+    """The node's ``position_tolerance_m`` (declared here when the node has not declared it)."""
+    if not node.has_parameter("position_tolerance_m"):
+        declare_parameters(node, POSITION_PARAMS)
+    tol = float(node.get_parameter("position_tolerance_m").value)
+    if not (tol > 0 and tol < float("inf")):
+        raise ValueError(f"position_tolerance_m must be a positive length [m], got {tol}")
+    return tol
+
+
 class ObservationIntake:
     """``/ct/observations`` messages into a CampaignAccumulator; bad messages are logged,
-    counted and skipped."""
+    counted and skipped. Stage positions are split on motion in time (parameter
+    ``position_tolerance_m``, ct_pipeline.PositionSegmenter)."""
 
     def __init__(self, node, ref):
         from ct_calib_nodes.core.ct_pipeline import CampaignAccumulator  # noqa: PLC0415
 
         self.node = node
-        self.acc = CampaignAccumulator()
+        self.acc = CampaignAccumulator(position_tolerance(node))
         self.id_to_index = {int(i): k for k, i in enumerate(ref.ids)}
         self.bad_messages = 0
         self.last_rx = None
