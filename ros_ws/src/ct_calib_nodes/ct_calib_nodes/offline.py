@@ -86,14 +86,15 @@ class _StageClock:
 _WORKER: dict = {}
 
 
-def _worker_init(ref, detector, sdd, flat, init_frames, tolerance):
+def _worker_init(ref, detector, sdd, flat, init_frames, tolerance, dark=None):
     try:
         import cv2  # noqa: PLC0415
 
         cv2.setNumThreads(1)        # one process per core: no thread pool on top
     except ImportError:
         pass
-    _WORKER["proc"] = FrameProcessor(ref, detector, sdd, flat, init_frames=init_frames, srd_tolerance_m=tolerance)
+    _WORKER["proc"] = FrameProcessor(ref, detector, sdd, flat, init_frames=init_frames, srd_tolerance_m=tolerance,
+                                     dark=dark)
 
 
 def _worker_detect(task):
@@ -136,8 +137,8 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
     clock = _StageClock(timing)
     out = OfflineResult(read_report=ReadReport(), acc=CampaignAccumulator(position_tolerance_m))
     counts = {"images": 0, "stage_readings": 0, "frames": 0, "bad_frames": 0, "bad_stage": 0, "unpaired": 0}
-    proc = FrameProcessor(ref, instrument.detector, instrument.sdd_reported_m, instrument.flat_field_counts,
-                          init_frames=init_frames, srd_tolerance_m=position_tolerance_m)
+    proc = FrameProcessor(ref, instrument.detector, instrument.sdd_reported_m, instrument.flat_field(),
+                          init_frames=init_frames, srd_tolerance_m=position_tolerance_m, dark=instrument.dark)
     images, stages = {}, {}
     t0 = time.monotonic()
     shape = (instrument.detector.rows, instrument.detector.cols)
@@ -262,7 +263,8 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
         ctx = multiprocessing.get_context("forkserver")
         with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
                                  initargs=(ref, instrument.detector, instrument.sdd_reported_m,
-                                           instrument.flat_field_counts, init_frames, position_tolerance_m)) as pool:
+                                           instrument.flat_field(), init_frames, position_tolerance_m,
+                                           instrument.dark)) as pool:
             for t in messages(raw=True):
                 n0 = counts["frames"]
                 got = paired(t)

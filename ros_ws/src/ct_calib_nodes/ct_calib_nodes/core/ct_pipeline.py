@@ -466,13 +466,15 @@ class FrameProcessor:
 
     def __init__(self, ref, detector: DetectorSpec, sdd_reported_m: float, flat_field_counts: float,
                  init_frames: int = 6, detection_settings=None, identify_settings=None,
-                 srd_tolerance_m: float = DEFAULT_POSITION_TOLERANCE_M, track_identity: bool = True):
+                 srd_tolerance_m: float = DEFAULT_POSITION_TOLERANCE_M, track_identity: bool = True, dark=None):
         from .identify import SphereIdentifier  # noqa: PLC0415
 
         self.ref = ref
         self.detector = detector
         self.sdd = float(sdd_reported_m)
-        self.flat = float(flat_field_counts) if flat_field_counts else None
+        self.flat = (np.asarray(flat_field_counts, dtype=np.float32) if np.ndim(flat_field_counts)
+                     else (float(flat_field_counts) if flat_field_counts else None))   # scalar or flat-field image
+        self.dark = dark
         self.init_frames = max(1, int(init_frames))
         self.segmenter = PositionSegmenter(srd_tolerance_m)
         self.srd_tolerance_m = self.segmenter.tolerance_m
@@ -491,15 +493,15 @@ class FrameProcessor:
         self.init_messages = []     # (srd, message) of every identity initialisation
 
     def diameter_range_px(self, srd_m: float):
-        d = self.ref.diameters_m
-        m_hi = self.sdd / max(srd_m - 0.08, 0.01)
-        m_lo = self.sdd / (srd_m + 0.08)
-        return (0.6 * d.min() * m_lo / self.detector.pixel_pitch_m, 1.5 * d.max() * m_hi / self.detector.pixel_pitch_m)
+        from .detect import shadow_diameter_range_px  # noqa: PLC0415
+
+        return shadow_diameter_range_px(self.ref.diameters_m, self.ref.centres_of_m, self.sdd, srd_m,
+                                        self.detector.pixel_pitch_m)
 
     def detect(self, image, encoding: str, srd_m: float):
         from .detect import detect_spheres  # noqa: PLC0415
 
-        return detect_spheres(image, encoding=encoding, flat_field_counts=self.flat,
+        return detect_spheres(image, encoding=encoding, flat_field_counts=self.flat, dark=self.dark,
                               expected_shape=(self.detector.rows, self.detector.cols),
                               diameter_px_range=self.diameter_range_px(srd_m), settings=self.detection_settings)
 

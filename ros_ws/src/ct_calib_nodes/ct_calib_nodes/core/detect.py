@@ -1,39 +1,47 @@
 """Sub-pixel detection of sphere shadows in CT projections.
 
-One pure function, :func:`detect_spheres`, turns one projection (``mono16``
-counts or ``32FC1`` transmission, see INTERFACES.md) into the ellipse centres
-of every sphere shadow it can measure, plus the list of candidates it refused
-and why. It keeps no state, so a bad frame raises :class:`FrameError` for that
-frame only and the rest of a run is unaffected.
+One pure function, :func:`detect_spheres`, turns one projection (counts in
+``mono16``/``16UC1``/``mono8``/``8UC1`` or ``32FC1`` transmission, see
+INTERFACES.md) into the ellipse centres of every sphere shadow it can
+measure, plus the list of candidates it refused and why. It keeps no state,
+so a bad frame raises :class:`FrameError` for that frame only and the rest of
+a run is unaffected. Nothing in it assumes a particular holder (tube, plate,
+foam) or its orientation in the image.
 
-Pipeline (numbers are the defaults of :class:`DetectionSettings`)
+Pipeline (one named function per stage; numbers are the defaults of
+:class:`DetectionSettings`)
 ------------------------------------------------------------------
-1. Frame checks and conversion to transmission ``T = I / I0`` (float32; the
-   photon noise of a 50000-count frame is 4.5e-3 in T, far above float32
-   resolution). Bad frames -> :class:`FrameError` with a ``reason``.
-2. Background: the frame is divided by a vertical morphological closing of
-   itself (see ``DetectionSettings.vertical_background``), which keeps the
-   carbon-fibre tube's dark tangential bands and removes the spheres, so the
-   normalised open-beam level is b ~ 1. Segmentation: pixels with
-   ``T < b * (1 - 0.10)`` are shadow. At 50000 counts the noise is
-   about 0.0045 b, so the threshold sits ~22 sigma below the background and
-   noise never makes a blob. 8-connected components with OpenCV.
-3. Candidate screening, each refusal recorded with a reason code:
-   ``edge_cut`` (shadow or its measuring annulus leaves the image),
-   ``not_a_sphere_size`` (far smaller than the expected diameter, or larger
-   than three merged spheres: tube wall, dirt), ``not_a_sphere_contrast``
-   (too shallow), ``overlap`` (blob too large for one sphere, too elongated,
-   not elliptical, darker than one sphere can be, or a neighbour so close that
-   the shadows' penumbrae touch), ``fit_failed``, ``background_structure``
-   (the tube's end rim meets a wall band across the shadow). Overlaps are
-   rejected, never split (the paper's automated overlap rejection). Shadows
-   straddling the end rim get a repaired background; shadows on a wall-band
-   edge are flagged and carry extra column uncertainty (settings).
-4. Sub-pixel edges: ``n_rays`` radial profiles from the blob centre, sampled
-   by exact (float64 weight) bilinear interpolation, normalised by a local
-   planar background fitted on the outer ring (so flat-field gradients do not
-   shift the edge), and cut at the iso-level ``1 - 0.5 (1 - q_in)`` half way
-   between the local background and the inner shadow. Every iso-transmission
+1. Flat field, :func:`to_transmission`: frame checks and
+   ``T = (I - dark) / (flat - dark)`` (float32; flat a scalar or an image, dark
+   a level or an image, both optional). Bad frames -> :class:`FrameError`.
+2. Segmentation background, ``_segmentation_background``: the pointwise
+   minimum of closings with line segments in 6 directions, longer than a
+   shadow (half resolution, 16 bit). Each closing removes every shadow and
+   keeps straight steps of any orientation (a monotone profile is its own
+   closing); the minimum keeps dark bands long in some direction (tube walls
+   at any tilt, a plate seen edge-on).
+3. Candidates, ``_candidates``: ``T / background < 1 - 0.10`` (at 50000
+   counts ~22 noise sd), 8-connected components, screening with a reason
+   code per refusal: ``edge_cut``, ``not_a_sphere_size``, ``overlap`` (too
+   large, elongated or not elliptical, or a neighbour closer than 4 px, whose
+   penumbra would bias the edge). A blob refused as merged is first split by a
+   binary opening with a disk of 0.8 x the smallest shadow (a sphere on a band,
+   two shadows joined by their rims) and the pieces screened. Overlapping
+   shadows are rejected, never split into two fits.
+4. Local background per shadow, ``_local_backgrounds``: the direction of the
+   strongest structure round the shadow from the structure tensor of the
+   frame's gradients off the shadows (snapped to the pixel axes within
+   1.5 deg); on a grid turned to it, every line across the shadow is fitted by
+   a straight line along the structure through the samples outside the shadow
+   (radius + 3 px; other shadows masked; samples 4 noise sd below the first fit
+   dropped), so steps and bands of any orientation through the shadow and any
+   smooth gradient (heel effect, vignetting) are interpolated across it. Hot
+   and dead pixels in these windows (beyond all 8 neighbours by 6 noise sd)
+   are replaced by their neighbours' mean and counted.
+5. Sub-pixel edges, ``_edge_points``: ``n_rays`` radial profiles from the
+   blob centre, exact (float64 weight) bilinear interpolation, divided by the
+   local background, cut at the iso-level ``1 - 0.5 (1 - q_in)`` half way
+   between the background and the inner shadow. Every iso-transmission
    contour of a sphere is an iso-chord contour, i.e. the section of a circular
    cone of rays around the source-to-centre line, hence an exact ellipse.
    A second pass re-centres the rays on the first fit.
@@ -46,12 +54,21 @@ Pipeline (numbers are the defaults of :class:`DetectionSettings`)
    algebraic fitters' bias is O(sigma^2 / R) ~ 1e-4 px and all four agree to
    well under 0.005 px, so the default is ``cv2.fitEllipse`` (fastest; the
    geometric refinement costs ~10x more and buys nothing measurable).
-6. Centre uncertainty: ``f sigma_edge^2 (sum_i n_i n_i^T)^-1`` with ``n_i`` the
-   edge normals, ``sigma_edge`` the fit RMS (degrees-of-freedom corrected) and
-   ``f = max(1, n / (pi r))`` for the correlation of neighbouring rays, which
-   sample shared pixels. It covers the photon noise only; the measured spread
-   on rendered frames is still ~1.3x larger (doc/ct_detect.md).
-7. Optional Deng / Clackdoyle correction from the ellipse centre to the
+6. Rejection after the fit, ``_screen_fits``: ``not_a_sphere_contrast``,
+   ``overlap`` (axis ratio, darker than one sphere), ``not_a_sphere_shape``
+   (edge RMS), ``not_a_sphere_size``, ``background_structure`` (the background
+   also changes along its main structure, > 2x the frame's median: a corner
+   of two steps; or the local model misfits > 3x the frame's median).
+7. Centre uncertainty, ``_centre_uncertainty``: ``f sigma_edge^2 (sum_i n_i
+   n_i^T)^-1`` with ``n_i`` the edge normals, ``sigma_edge`` the fit RMS
+   (degrees-of-freedom corrected) and ``f = max(1, n / (pi r))`` for the
+   correlation of neighbouring rays, which sample shared pixels. Shadows whose
+   edge crosses a background edge (band or step: the sub-pixel mixing of the
+   two is not undone by any division) add, from their own data, the outer
+   product of the centre's change when the points on that edge are left out
+   of the fit and a cluster-robust term with each run of those points as one
+   cluster.
+8. Optional Deng / Clackdoyle correction from the ellipse centre to the
    projection of the sphere centre, given the nominal source-to-detector
    distance in pixels and the principal point (detector centre by default).
    For a cone of half angle beta around an axis at angle tau from the detector
@@ -165,33 +182,39 @@ class DetectionSettings:
     border_margin_px : float
         Shadows whose measuring annulus comes closer than this to the image
         border are ``edge_cut``.
-    vertical_background : bool
-        Divide the frame by its background estimated with a vertical
-        morphological closing (1x3 vertical box blur, then a 1 x L line), which removes
-        every dark feature shorter than L rows (the spheres) and keeps features
-        that are long along the rotation axis: the carbon-fibre tube, whose
-        tangential walls cast dark bands (T ~ 0.7) right where the spheres at
-        the sides of the object project. Without it about half of helix49's
-        spheres merge with the tube bands. Assumes the object is roughly
-        upright (tube axis within a few degrees of the image columns).
     background_window_px : int or None
-        L; None: ``2 * max diameter + 9`` px (61 px without a diameter range).
-    repair_horizontal_steps : bool
-        With ``vertical_background``: where a roughly horizontal background
-        step (the tube's end rim) crosses a shadow, replace the closing's
-        background under it by a horizontal interpolation (the closing puts
-        the step at the shadow's border: row bias up to 0.1 px without this).
-    background_edge_gradient, background_edge_min_fraction, background_edge_sigma_px : float
-        A shadow more than ``min_fraction`` of whose edge points lie where the
-        background changes by more than ``gradient`` (relative) over 4 columns
-        (a tube-wall band edge) gets ``sigma_px`` added in quadrature to its
-        column uncertainty [px]. The inner edge of a wall band is a sub-pixel
-        cusp; averaging the product of shadow and band over a pixel (and the
-        detector blur) mixes them, which no division by a background undoes.
-        Calibrated on 1989 rendered detections (helix49 + tube, k = 1 and the
-        last position, seeds 5, 6, 11, 12): column rms 0.0143 px on the 537
-        flagged shadows (reported 0.0064) vs 0.0059 px on the others; 0.012 px
-        makes the mean squared column z-score 1. 0 disables.
+        Length L of the segmentation closings' line segments; None:
+        ``1.5 * max diameter * (1 + size_tolerance) + 7`` px (61 px without a range).
+    n_orientations : int
+        Directions of the segmentation closings (180 deg / n apart).
+    snap_deg : float
+        Local background orientations within this of a pixel axis are snapped to it.
+    exclusion_px : float
+        Margin beyond the blob radius left out of the local background fit (blur, penumbra).
+    background_span_px : float
+        Least length of the background samples on each side of a shadow along the structure.
+    max_background_misfit, max_cross_structure : float
+        ``background_structure`` when the local model's misfit, or the gradient energy
+        along the main structure, exceeds this factor times the frame's median.
+    hot_pixel_sigma : float
+        Hot/dead pixel threshold in noise sd beyond all 8 neighbours; 0 disables.
+    fixed_orientation_deg : float or None
+        For comparisons only: one orientation of the local model everywhere (0 = vertical lines).
+    background_edge_gradient, background_edge_min_fraction : float
+        A shadow more than ``min_fraction`` of whose edge points lie where the local
+        background changes by more than ``gradient`` (relative) over 4 px across its
+        structure (a band or step edge) is ``on_background_edge``: averaging the product of
+        shadow and band over a pixel (and the detector blur) mixes them, which no division
+        by a background undoes.
+    background_edge_refit : bool
+        For those shadows, add the outer product of the centre's change when the points on
+        the background edge are left out of the fit (the data's own estimate of the effect).
+    background_edge_clusters : float
+        Weight of the cluster-robust term (each run of edge points on the background edge
+        one cluster of the sandwich covariance); 0 disables.
+    background_edge_sigma_px : float
+        A fixed extra sd [px] across the structure for those shadows (0 = off; the former
+        default 0.012 px was calibrated on the simulator's carbon tube).
     """
 
     segment_depth: float = 0.10
@@ -208,12 +231,20 @@ class DetectionSettings:
     overlap_darkness: float | None = 1.5
     proximity_margin_px: float = 4.0
     border_margin_px: float = 1.0
-    vertical_background: bool = True
     background_window_px: int | None = None
-    repair_horizontal_steps: bool = True
+    n_orientations: int = 6
+    snap_deg: float = 1.5
+    exclusion_px: float = 3.0
+    background_span_px: float = 6.0
+    max_background_misfit: float = 3.0
+    max_cross_structure: float = 2.0
+    hot_pixel_sigma: float = 6.0
+    fixed_orientation_deg: float | None = None
     background_edge_gradient: float = 0.04
     background_edge_min_fraction: float = 0.05
-    background_edge_sigma_px: float = 0.012
+    background_edge_sigma_px: float = 0.0
+    background_edge_clusters: float = 1.0
+    background_edge_refit: bool = True
 
     def __post_init__(self):
         if self.ellipse_fitter not in ("fitEllipse", "fitEllipseAMS", "fitEllipseDirect", "geometric"):
@@ -230,6 +261,12 @@ class DetectionSettings:
                              "and background_edge_sigma_px >= 0")
         if int(self.n_passes) < 1:
             raise ValueError("n_passes must be >= 1")
+        if int(self.n_orientations) < 2 or not self.hot_pixel_sigma >= 0 or not self.exclusion_px >= 0:
+            raise ValueError("n_orientations must be >= 2, hot_pixel_sigma and exclusion_px >= 0")
+        if not (self.max_background_misfit > 0 and self.max_cross_structure > 0 and self.background_span_px > 0
+                and self.background_edge_clusters >= 0):
+            raise ValueError("max_background_misfit, max_cross_structure, background_span_px must be > 0, "
+                             "background_edge_clusters >= 0")
 
 
 @dataclass(frozen=True)
@@ -284,16 +321,20 @@ class FrameDetections:
     min_transmission : ndarray of shape (M,)
         Darkest normalised transmission in the shadow.
     on_background_edge : ndarray of shape (M,), bool
-        The shadow's edge crosses a strong vertical background edge (a tube
-        wall band); its column variance includes ``background_edge_sigma_px``.
+        The shadow's edge crosses a strong background edge (a band or step of the
+        holder); its covariance includes the data-driven background-edge terms.
     rejected : RejectedCandidates
     background : float
-        Open-beam transmission level of the frame.
+        Open-beam level of the normalised frame (1: every shadow is divided by its local background).
     success : bool
         False only if not a single sphere was accepted.
     message : str
     nfev : int
         Number of ellipse fits performed.
+    n_hot_pixels : ndarray of shape (M,), int
+        Hot/dead pixels repaired within 1.5 semi-major axes + 4 px of each centre.
+    hot_pixels_px : ndarray of shape (K, 2)
+        (col, row) of every repaired hot/dead pixel near a shadow.
     """
 
     centre_px: np.ndarray
@@ -310,6 +351,8 @@ class FrameDetections:
     success: bool
     message: str
     nfev: int = 0
+    n_hot_pixels: np.ndarray | None = None
+    hot_pixels_px: np.ndarray | None = None
 
     def __len__(self):
         return self.centre_px.shape[0]
@@ -342,20 +385,35 @@ class FrameDetections:
 
 # --------------------------------------------------------------------------- frame checks
 
+#: Encodings accepted (INTERFACES.md mono16 semantics for the integer ones: raw counts, the bit
+#: depth, hence the saturation level, from the encoding).
+ENCODING_FULL_SCALE = {"mono16": 65535, "16UC1": 65535, "mono8": 255, "8UC1": 255}
+ENCODINGS = tuple(ENCODING_FULL_SCALE) + ("32FC1",)
+
+
 def to_transmission(image, encoding: str = "mono16", flat_field_counts=None,
-                    expected_shape=None, _convert: bool = True) -> np.ndarray | None:
-    """Check one frame and convert it to transmission.
+                    expected_shape=None, dark=None) -> np.ndarray:
+    """Check one frame and convert it to transmission (the flat-field stage).
 
     Parameters
     ----------
     image : array_like of shape (rows, cols)
-        ``mono16``: unsigned 16-bit counts. ``32FC1``: transmission I/I0 (any
-        float dtype).
-    encoding : {"mono16", "32FC1"}
+        Integer encodings (``mono16``, ``16UC1``, ``mono8``, ``8UC1``): raw counts
+        of that bit depth. ``32FC1``: transmission I/I0 (any float dtype).
+    encoding : str
+        One of ``ENCODINGS``.
     flat_field_counts : float or ndarray of shape (rows, cols), optional
-        Open-beam counts (``mono16`` only). None: the frame's own median.
+        Open-beam counts (integer encodings only): a scalar (ct_instrument.yaml's
+        ``flat_field_counts``) or a flat-field image. None: the frame's own median.
+        A scalar above the encoding's full scale (the file's mono16 value for a
+        mono8 frame) does not describe these frames and is replaced by the
+        frame's median (the detector normalises locally, so only the frame
+        checks use the absolute level).
     expected_shape : tuple (rows, cols), optional
         From ct_instrument.yaml; a mismatch is a ``wrong_size`` FrameError.
+    dark : float or ndarray of shape (rows, cols), optional
+        Dark (offset) counts subtracted from the frame and the flat field:
+        ``T = (I - dark) / (flat - dark)``.
 
     Returns
     -------
@@ -364,10 +422,10 @@ def to_transmission(image, encoding: str = "mono16", flat_field_counts=None,
     Raises
     ------
     FrameError
-        Wrong dtype/encoding/size, NaN/inf, all dark, saturated, uniform.
+        Wrong dtype/encoding/size, NaN/inf, all dark, saturated, uniform, bad flat/dark.
     """
-    if encoding not in ("mono16", "32FC1"):
-        raise FrameError("wrong_encoding", f"encoding must be 'mono16' or '32FC1', got {encoding!r}")
+    if encoding not in ENCODINGS:
+        raise FrameError("wrong_encoding", f"encoding must be one of {ENCODINGS}, got {encoding!r}")
     img = np.asarray(image)
     if img.ndim != 2:
         raise FrameError("wrong_size", f"image must be 2-D (rows, cols), got shape {img.shape}")
@@ -379,40 +437,38 @@ def to_transmission(image, encoding: str = "mono16", flat_field_counts=None,
     if img.shape[0] < 16 or img.shape[1] < 16:
         raise FrameError("wrong_size", f"image {img.shape} is too small")
     sub = img[::8, ::8]
-    if encoding == "mono16":
-        if img.dtype != np.uint16:
-            raise FrameError("wrong_dtype", f"mono16 frames must be uint16, got {img.dtype}")
-        if np.count_nonzero(sub == 65535) > 0.5 * sub.size:
-            raise FrameError("saturated", "more than half of the pixels are at 65535 counts")
-        if flat_field_counts is None or (not _convert and np.ndim(flat_field_counts) == 0):
-            if flat_field_counts is None:
-                i0 = float(np.median(sub))
-                if i0 <= 0.0:
-                    raise FrameError("all_dark", "median count is 0 and no flat field was given")
-            else:
-                i0 = float(flat_field_counts)
-                if not (np.isfinite(i0) and i0 > 0):
-                    raise FrameError("bad_flat_field", f"flat_field_counts must be > 0, got {i0}")
-            if not _convert:
-                med = float(np.median(sub)) / i0
-                if med < 0.02:
-                    raise FrameError("all_dark", f"median transmission {med:.3g} < 0.02 (beam off or shutter closed)")
-                if int(sub.max()) == int(sub.min()) and int(img.max()) == int(img.min()):
-                    raise FrameError("uniform", f"every pixel has the same value {int(img.flat[0])} "
-                                                "(no signal, no noise)")
-                return None
-            trans = img.astype(np.float32) * np.float32(1.0 / i0)
+    if encoding != "32FC1":
+        full = ENCODING_FULL_SCALE[encoding]
+        want = np.uint16 if full == 65535 else np.uint8
+        if img.dtype != want:
+            raise FrameError("wrong_dtype", f"{encoding} frames must be {np.dtype(want).name}, got {img.dtype}")
+        if np.count_nonzero(sub == full) > 0.5 * sub.size:
+            raise FrameError("saturated", f"more than half of the pixels are at {full} counts (full scale)")
+        d = _dark_level(dark, img.shape)
+        if flat_field_counts is None or (np.ndim(flat_field_counts) == 0 and float(flat_field_counts) > full):
+            i0 = float(np.median(sub)) - (float(np.median(d[::8, ::8])) if np.ndim(d) else float(d))
+            if i0 <= 0.0:
+                raise FrameError("all_dark", "median count is at or below the dark level and no flat field was given")
+            ff = np.float32(i0)
         else:
-            ff = np.asarray(flat_field_counts, dtype=np.float64)
+            ff = np.asarray(flat_field_counts, dtype=np.float32)
             if ff.ndim == 0:
                 if not (np.isfinite(ff) and ff > 0):
                     raise FrameError("bad_flat_field", f"flat_field_counts must be > 0, got {ff}")
-                trans = img.astype(np.float32) * np.float32(1.0 / float(ff))
-            else:
-                if ff.shape != img.shape or not np.all(np.isfinite(ff)) or np.any(ff <= 0):
-                    raise FrameError("bad_flat_field", "flat field must be a positive scalar or a finite "
-                                                       f"positive array of shape {img.shape}")
-                trans = (img.astype(np.float32) / ff.astype(np.float32))
+            elif ff.shape != img.shape or not np.all(np.isfinite(ff)):
+                raise FrameError("bad_flat_field", "flat field must be a positive scalar or a finite "
+                                                   f"array of shape {img.shape}, got shape {ff.shape}")
+            ff = ff - d
+            if np.any(ff <= 0):
+                raise FrameError("bad_flat_field", "flat field minus dark must be > 0 everywhere")
+        if np.ndim(d) or d:
+            num = img.astype(np.float32)
+            num -= d
+            trans = num / ff if np.ndim(ff) else num * np.float32(1.0 / float(ff))
+        elif np.ndim(ff):
+            trans = cv2.divide(img.astype(np.float32), ff)
+        else:
+            trans = cv2.multiply(img, 1.0 / float(ff), dtype=cv2.CV_32F)
     else:
         if not np.issubdtype(img.dtype, np.floating):
             raise FrameError("wrong_dtype", f"32FC1 frames must be floating point, got {img.dtype}")
@@ -427,6 +483,20 @@ def to_transmission(image, encoding: str = "mono16", flat_field_counts=None,
     if float(np.ptp(tsub)) == 0.0 and float(np.ptp(trans)) == 0.0:
         raise FrameError("uniform", f"every pixel has the same value {med:.6g} (no signal, no noise)")
     return trans
+
+
+def _dark_level(dark, shape):
+    """Dark counts as float32 scalar or array, checked."""
+    if dark is None:
+        return np.float32(0.0)
+    d = np.asarray(dark, dtype=np.float32)
+    if d.ndim == 0:
+        if not (np.isfinite(d) and d >= 0):
+            raise FrameError("bad_flat_field", f"dark level must be finite and >= 0, got {float(d)}")
+        return np.float32(d)
+    if d.shape != tuple(shape) or not np.all(np.isfinite(d)):
+        raise FrameError("bad_flat_field", f"dark image must be finite with shape {tuple(shape)}, got {d.shape}")
+    return d
 
 
 # --------------------------------------------------------------------------- helpers
@@ -566,28 +636,31 @@ def _check_range(diameter_px_range):
 
 def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, expected_shape=None,
                    diameter_px_range=None, settings: DetectionSettings | None = None,
-                   sdd_px: float | None = None, principal_point_px=None) -> FrameDetections:
+                   sdd_px: float | None = None, principal_point_px=None, dark=None) -> FrameDetections:
     """Find and measure every sphere shadow in one projection.
 
     Parameters
     ----------
     image : array_like of shape (rows, cols)
-        ``mono16`` uint16 counts or ``32FC1`` transmission.
-    encoding : {"mono16", "32FC1"}
+        Counts (``mono16``/``16UC1`` uint16, ``mono8``/``8UC1`` uint8) or ``32FC1`` transmission.
+    encoding : str
+        One of ``ENCODINGS``.
     flat_field_counts : float or ndarray of shape (rows, cols), optional
-        Open-beam counts for ``mono16`` (ct_instrument.yaml).
+        Open-beam counts (scalar or flat-field image, ct_instrument.yaml).
     expected_shape : tuple (rows, cols), optional
         Detector size from ct_instrument.yaml.
     diameter_px_range : tuple (min, max), optional
-        Expected shadow diameters [px] from the nominal geometry (sphere
-        diameter x magnification range / pixel pitch). Without it only shape
-        and contrast screen the blobs.
+        Expected shadow diameters [px] from the nominal geometry (see
+        :func:`shadow_diameter_range_px`). Without it only shape and contrast
+        screen the blobs.
     settings : DetectionSettings, optional
     sdd_px : float, optional
         Nominal source-to-detector distance in pixels; enables
         ``centre_corrected_px``.
     principal_point_px : array_like of shape (2,), optional
         Defaults to the detector centre ((cols-1)/2, (rows-1)/2).
+    dark : float or ndarray of shape (rows, cols), optional
+        Dark (offset) counts.
 
     Returns
     -------
@@ -602,214 +675,557 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
     """
     st = settings if settings is not None else DetectionSettings()
     drange = _check_range(diameter_px_range)
-    fast16 = (st.vertical_background and encoding == "mono16"
-              and (flat_field_counts is None or np.ndim(flat_field_counts) == 0))
-    trans = to_transmission(image, encoding, flat_field_counts, expected_shape, _convert=not fast16)
-    rows, cols = np.asarray(image).shape
-    bg = float(np.median(trans[::8, ::8])) if trans is not None else 1.0
-    if st.vertical_background:
-        if st.background_window_px is not None:
-            win = int(st.background_window_px)
-        elif drange is not None:
-            win = int(2.0 * drange[1] * (1.0 + st.size_tolerance)) + 9
+    trans = to_transmission(image, encoding, flat_field_counts, expected_shape, dark)     # 1 flat field
+    noise = _noise_level(trans)
+    bg = _segmentation_background(trans, st, drange)                                      # 2 background
+    rej = _Rejections()
+    cand = _candidates(trans, bg, st, drange, rej)                                        # 3 candidates
+    cand.noise = noise
+    if len(cand.index) == 0:
+        return _assemble([], rej, 0, sdd_px, principal_point_px, trans.shape, np.zeros((0, 2)),
+                         "no sphere shadow accepted")
+    model, hot = _local_backgrounds(trans, bg, cand, st)                                  # 4 local background,
+    #                                                                                       hot pixels
+    meas = _measure_edges_and_fit(trans, model, cand, st)                                 # 5 edges, 6 fit
+    accepted = _screen_fits(meas, cand, model, st, drange, rej)                           # 7 rejection
+    accepted = _centre_uncertainty(accepted, meas, model, st)                             # 8 uncertainty
+    return _assemble(accepted, rej, meas.n_fits, sdd_px, principal_point_px, trans.shape, hot, "",
+                     meas=meas, cand=cand)
+
+
+class _Rejections:
+    """Refused candidates, in order."""
+
+    def __init__(self):
+        self.centre, self.area, self.reason, self.detail = [], [], [], []
+
+    def add(self, centre, area, reason, detail):
+        self.centre.append(np.asarray(centre, dtype=np.float64))
+        self.area.append(float(area))
+        self.reason.append(reason)
+        self.detail.append(detail)
+
+
+def shadow_diameter_range_px(diameters_m, centres_of_m, sdd_m: float, srd_m: float, pixel_pitch_m: float):
+    """Nominal (min, max) shadow diameter [px] of a reference object at a stage position.
+
+    The object's extent along the beam is taken from the reference object itself (the
+    largest distance of a sphere centre from the centroid, plus the sphere radius), so
+    nothing is assumed about its size; 0.6 / 1.5 of the extreme magnifications leave room
+    for an object off the axis and for an SDD/SRD that differ from the nominal ones.
+    """
+    d = np.asarray(diameters_m, dtype=float)
+    c = np.asarray(centres_of_m, dtype=float).reshape(-1, 3)
+    extent = float(np.max(np.linalg.norm(c - c.mean(axis=0), axis=1))) + 0.5 * float(d.max())
+    m_hi = sdd_m / max(srd_m - extent, 0.01)
+    m_lo = sdd_m / (srd_m + extent)
+    return 0.6 * float(d.min()) * m_lo / pixel_pitch_m, 1.5 * float(d.max()) * m_hi / pixel_pitch_m
+
+
+# --------------------------------------------------------------------------- noise, hot pixels
+
+def _noise_level(trans) -> float:
+    """Robust sd of the pixel noise at the open-beam level, from neighbouring-pixel differences."""
+    d = (trans[4:-4:16, 5:-4:8] - trans[4:-4:16, 4:-5:8]).ravel()
+    s = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2.0)
+    return max(s, 1e-6)
+
+
+_RING3 = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], np.uint8)
+
+
+def _repair_hot_pixels(trans, win, yy, xx, noise, st):
+    """Hot (dead) pixels in the windows round the shadows: single pixels brighter (darker) than
+    all 8 neighbours by more than ``hot_pixel_sigma`` noise sd, which a detector blurred over
+    ~1 px cannot make. Replaced by the mean of their neighbours, in ``trans`` and ``win``
+    (in place). Returns their (col, row) positions (K, 2)."""
+    if not st.hot_pixel_sigma:
+        return np.zeros((0, 2))
+    k = np.float32(st.hot_pixel_sigma * noise)
+    cen = win[:, 1:-1, 1:-1]
+    nb = [win[:, 1 + dr:win.shape[1] - 1 + dr, 1 + dc:win.shape[2] - 1 + dc]
+          for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc]
+    mx = nb[0].copy()
+    mn = nb[0].copy()
+    for a in nb[1:]:
+        np.maximum(mx, a, out=mx)
+        np.minimum(mn, a, out=mn)
+    ci, ri, cj = np.nonzero((cen > mx + k) | (cen < mn - k))
+    if ci.size == 0:
+        return np.zeros((0, 2))
+    r = yy[ci, ri + 1, 0]
+    c = xx[ci, 0, cj + 1]
+    rc = np.unique(np.column_stack([r, c]), axis=0)
+    if rc.shape[0] > 0.01 * win.size:          # not isolated defects: leave the frame alone
+        return np.zeros((0, 2))
+    rows, cols = trans.shape
+    r, c = rc[:, 0], rc[:, 1]
+    acc = np.zeros(r.size, np.float64)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if dr or dc:
+                acc += trans[np.clip(r + dr, 0, rows - 1), np.clip(c + dc, 0, cols - 1)]
+    trans[r, c] = acc / 8.0
+    win[...] = trans[yy, xx]
+    return np.column_stack([c, r]).astype(np.float64)
+
+
+# --------------------------------------------------------------------------- stage 3: segmentation background
+
+def _segmentation_background(trans, st, drange):
+    """Background for segmentation: the pointwise minimum of morphological closings of the
+    frame with line segments of ``n_orientations`` directions, longer than a shadow.
+
+    Every closing removes each sphere shadow (shorter than the line in every direction) and
+    keeps straight steps of any orientation (plate edges, field stops: a monotone profile is
+    its own closing); the minimum keeps dark bands (tube walls, a plate seen edge-on) that
+    are long in at least one of the directions. Computed at half resolution (area average,
+    which also lowers the noise) and interpolated back. uint16 (rows, cols), T x 16384."""
+    if st.background_window_px is not None:
+        win = int(st.background_window_px)
+    elif drange is not None:
+        win = int(1.5 * drange[1] * (1.0 + st.size_tolerance)) + 7
+    else:
+        win = 61
+    rows, cols = trans.shape
+    half = cv2.resize(trans, (cols // 2, rows // 2), interpolation=cv2.INTER_AREA)
+    half = (np.minimum(half, np.float32(3.99)) * np.float32(16384.0)).astype(np.uint16)   # 16-bit: 2x faster
+    h = max(3, win // 2) | 1
+    out = None
+    for k in range(int(st.n_orientations)):
+        th = np.pi * k / int(st.n_orientations)
+        ker = _line_kernel(h, th)
+        c = cv2.morphologyEx(half, cv2.MORPH_CLOSE, ker, borderType=cv2.BORDER_REPLICATE)
+        out = c if out is None else np.minimum(out, c, out=out)
+    bg = cv2.resize(out, (cols, rows), interpolation=cv2.INTER_LINEAR)
+    return np.maximum(bg, 1, out=bg)           # uint16, transmission x 16384
+
+
+_KERNELS = {}
+
+
+def _line_kernel(length, theta):
+    key = (int(length), round(float(theta), 6))
+    ker = _KERNELS.get(key)
+    if ker is None:
+        c, s = np.cos(theta), np.sin(theta)
+        if abs(s) < 1e-9:
+            ker = np.ones((1, length), np.uint8)
+        elif abs(c) < 1e-9:
+            ker = np.ones((length, 1), np.uint8)
         else:
-            win = 61
-        win += 1 - win % 2
-        kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (1, win))
-        # morphology on 16-bit integers is ~2x faster than on float32 in OpenCV
-        raw = np.asarray(image)
-        if fast16:
-            bg16 = cv2.morphologyEx(cv2.blur(raw, (1, 3)), cv2.MORPH_CLOSE, kernel)
-            np.maximum(bg16, 1, out=bg16)
-            trans = cv2.divide(raw, bg16, dtype=cv2.CV_32F)
-        else:
-            u16 = (np.minimum(trans, np.float32(3.99)) * np.float32(16384.0)).astype(np.uint16)
-            bg16 = cv2.morphologyEx(cv2.blur(u16, (1, 3)), cv2.MORPH_CLOSE, kernel)
-            np.maximum(bg16, 1, out=bg16)
-            trans = cv2.divide(trans, bg16.astype(np.float32), scale=16384.0, dtype=cv2.CV_32F)
-        bg = 1.0
-    thr = np.float32(bg * (1.0 - st.segment_depth))
-    mask = (trans < thr).view(np.uint8)
+            h = length // 2
+            w_ = int(np.ceil(abs(c) * h)), int(np.ceil(abs(s) * h))
+            ker = np.zeros((2 * w_[1] + 1, 2 * w_[0] + 1), np.uint8)
+            cv2.line(ker, (int(round(w_[0] - c * h)), int(round(w_[1] - s * h))),
+                     (int(round(w_[0] + c * h)), int(round(w_[1] + s * h))), 1, 1)
+        _KERNELS[key] = ker
+    return ker
+
+
+# --------------------------------------------------------------------------- stage 4: candidates
+
+@dataclass
+class _Candidates:
+    index: np.ndarray       # (C,) component index
+    centre: np.ndarray      # (C, 2) centroid (col, row)
+    radius: np.ndarray      # (C,) equivalent radius of the thresholded blob
+    area: np.ndarray        # (C,)
+    shadows: np.ndarray     # (rows, cols) uint8: 1 on compact shadows (grown by 2 px)
+    noise: float = 0.0      # pixel noise sd at the open-beam level
+
+
+def _candidates(trans, bg, st, drange, rej):
+    """Threshold frame / background, label components, screen them (size, border, shape,
+    proximity). A blob refused as merged (too large, elongated, not elliptical: a sphere on a
+    dark band the closings did not keep, or two shadows joined by their blurred rims) is first
+    split by a binary opening with a disk of 0.8 x the smallest shadow; its pieces are screened
+    like blobs (and refused if still merged)."""
+    rows, cols = trans.shape
+    ratio = cv2.divide(trans, bg, scale=16384.0, dtype=cv2.CV_32F)
+    thr = np.float32(1.0 - st.segment_depth)
+    mask = (ratio < thr).view(np.uint8)
     n_lab, labels, stats, cents = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    stats = stats[1:]
+    stats = stats[1:].astype(np.int64)
     cents = cents[1:].astype(np.float64)
-
-    rej_c, rej_a, rej_r, rej_d = [], [], [], []
-
-    def reject(i, reason, detail):
-        rej_c.append(cents[i])
-        rej_a.append(float(stats[i, cv2.CC_STAT_AREA]))
-        rej_r.append(reason)
-        rej_d.append(detail)
-
-    area = stats[:, cv2.CC_STAT_AREA].astype(np.float64)
-    d_eq = 2.0 * np.sqrt(area / np.pi)
     if drange is not None:
         dmin = drange[0] * (1.0 - st.size_tolerance)
         dmax = drange[1] * (1.0 + st.size_tolerance)
     else:
         dmin, dmax = 4.0, np.inf
     single_area_max = np.pi * dmax ** 2 / 4.0
+    area = stats[:, cv2.CC_STAT_AREA].astype(np.float64)
+    d_eq = 2.0 * np.sqrt(area / np.pi)
+    kd = max(3, int(0.8 * dmin)) | 1
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (kd, kd))
 
-    # --- cheap screening on component statistics
-    cand = []
-    for i in range(stats.shape[0]):
+    # work list of blobs: (stats [x, y, w, h, area], centroid, binary blob in its box or None, piece?)
+    # blobs where the beam hardly reaches (outside a field stop, < 25 % of the typical open-beam
+    # level) are noise, not shadows: left out without a record
+    exposed = bg[np.clip(np.rint(cents[:, 1]).astype(np.intp), 0, rows - 1),
+                 np.clip(np.rint(cents[:, 0]).astype(np.intp), 0, cols - 1)] > 0.25 * float(np.median(bg[::16, ::16]))
+    # (bg: uint16, transmission x 16384)
+    work = [(stats[i], cents[i], None, False, i) for i in range(stats.shape[0]) if exposed[i]]
+    pieces = []                  # (stats, centroid, blob) of every piece made
+    split_parent = set()
+    cand = []                    # (work index, centre, radius, area)
+    k = 0
+    while k < len(work):
+        s_, (cx, cy), blob, piece, lab = work[k]
+        k += 1
+        x0, y0, w, h = (int(v) for v in s_[:4])
+        a = float(s_[4])
+        de = 2.0 * np.sqrt(a / np.pi)
+        if blob is None:
+            blob = labels[y0:y0 + h, x0:x0 + w] == lab + 1
+        if de < dmin:
+            if not piece:
+                rej.add((cx, cy), a, "not_a_sphere_size", f"diameter {de:.1f} px < {dmin:.1f} px")
+            continue
+        why = None
+        if de > dmax:
+            why = ("overlap", f"blob area {a:.0f} px^2 exceeds one sphere ({single_area_max:.0f} px^2): "
+                              "merged shadows") if a <= 3.5 * single_area_max else \
+                ("not_a_sphere_size", f"blob area {a:.0f} px^2 is larger than three spheres")
+        else:
+            r0 = 0.5 * de
+            reach = r0 + max(0.5 * r0, 4.0) + st.border_margin_px + 1.0
+            touches = x0 <= 0 or y0 <= 0 or x0 + w >= cols or y0 + h >= rows
+            if touches or cx - reach < 0 or cy - reach < 0 or cx + reach > cols - 1 or cy + reach > rows - 1:
+                rej.add((cx, cy), a, "edge_cut", "shadow touches the image border" if touches
+                        else "measuring annulus leaves the image")
+                continue
+            aspect = max(w, h) / max(1, min(w, h))
+            if aspect > 1.6 * st.max_axis_ratio:
+                why = ("overlap", f"blob bounding box aspect {aspect:.2f}: merged shadows")
+            else:
+                mom = cv2.moments(blob.view(np.uint8), binaryImage=True)
+                mu20, mu02, mu11 = mom["mu20"] / mom["m00"], mom["mu02"] / mom["m00"], mom["mu11"] / mom["m00"]
+                tr_, dd_ = mu20 + mu02, np.sqrt(max((mu20 - mu02) ** 2 + 4 * mu11 ** 2, 0.0))
+                l1, l2 = 0.5 * (tr_ + dd_), 0.5 * (tr_ - dd_)
+                m_ratio = np.sqrt(l1 / l2) if l2 > 0 else np.inf
+                if m_ratio > st.max_axis_ratio:
+                    why = ("overlap", f"blob moment axis ratio {m_ratio:.2f} > {st.max_axis_ratio}: merged shadows")
+        if why is None:
+            cand.append((k - 1, (cx, cy), 0.5 * de, a))
+            continue
+        if not piece and np.isfinite(dmax):
+            op = cv2.morphologyEx(blob.view(np.uint8), cv2.MORPH_OPEN, disk)
+            n2, lab2, st2, ce2 = cv2.connectedComponentsWithStats(op, connectivity=8)
+            new = []
+            for j in range(1, n2):
+                if st2[j, cv2.CC_STAT_AREA] < 0.5 * np.pi * dmin ** 2 / 4.0:
+                    continue
+                x2, y2, w2, h2, a2 = (int(v) for v in st2[j])
+                new.append((np.array([x0 + x2, y0 + y2, w2, h2, a2]), np.array([ce2[j, 0] + x0, ce2[j, 1] + y0]),
+                            lab2[y2:y2 + h2, x2:x2 + w2] == j, True, -1))
+            # a real split, or a single piece that lost a band: screen the pieces instead
+            if len(new) >= 2 or (len(new) == 1 and new[0][0][4] < a):
+                split_parent.add(lab)
+                work.extend(new)
+                pieces.extend(new)
+                continue
+        rej.add((cx, cy), a, *why)
+    # proximity: penumbrae of neighbours interact; compared with every compact blob of
+    # noticeable size (accepted or not, pieces instead of their parents), by centre distance
+    # minus both radii
+    allc = [cents[i] for i in range(stats.shape[0]) if i not in split_parent] + [p[1] for p in pieces]
+    alla = [area[i] for i in range(stats.shape[0]) if i not in split_parent] + [float(p[0][4]) for p in pieces]
+    allc = np.array(allc, dtype=np.float64).reshape(-1, 2)
+    alld = 2.0 * np.sqrt(np.array(alla, dtype=np.float64) / np.pi)
+    others = (alld >= max(3.0, 0.5 * dmin)) & (alld <= dmax)
+    oc, od = allc[others], alld[others]
+    keep = []
+    for (wi, (cx, cy), r0, a) in cand:
+        gap = np.hypot(oc[:, 0] - cx, oc[:, 1] - cy) - r0 - 0.5 * od
+        gap[np.hypot(oc[:, 0] - cx, oc[:, 1] - cy) < 1e-9] = np.inf       # itself
+        g = float(np.min(gap)) if gap.size else np.inf
+        if g < st.proximity_margin_px:
+            rej.add((cx, cy), a, "overlap", f"gap {max(g, 0.0):.1f} px to a neighbouring shadow "
+                                            f"< {st.proximity_margin_px:.1f} px")
+        else:
+            keep.append((cx, cy, r0, a))
+    # pixels of every compact shadow (not of bands or steps), grown by 2 px for the blurred rims:
+    # the local background models leave them out
+    shadows = mask.copy()
+    not_shadow = set(np.nonzero(~((d_eq >= 0.5 * dmin) & (area <= 3.5 * single_area_max)))[0].tolist())
+    for i in not_shadow | split_parent:
         x0, y0, w, h = (int(v) for v in stats[i, :4])
-        if d_eq[i] < dmin:
-            reject(i, "not_a_sphere_size", f"diameter {d_eq[i]:.1f} px < {dmin:.1f} px")
-            continue
-        if d_eq[i] > dmax:
-            if area[i] <= 3.5 * single_area_max:
-                reject(i, "overlap", f"blob area {area[i]:.0f} px^2 exceeds one sphere "
-                                     f"({single_area_max:.0f} px^2): merged shadows")
-            else:
-                reject(i, "not_a_sphere_size", f"blob area {area[i]:.0f} px^2 is larger than three spheres")
-            continue
-        r0 = 0.5 * d_eq[i]
-        reach = r0 + max(0.5 * r0, 4.0) + st.border_margin_px + 1.0
-        cx, cy = cents[i]
-        touches = x0 <= 0 or y0 <= 0 or x0 + w >= cols or y0 + h >= rows
-        if touches or cx - reach < 0 or cy - reach < 0 or cx + reach > cols - 1 or cy + reach > rows - 1:
-            reject(i, "edge_cut", "shadow touches the image border" if touches
-                   else "measuring annulus leaves the image")
-            continue
-        aspect = max(w, h) / max(1, min(w, h))
-        if aspect > 1.6 * st.max_axis_ratio:
-            reject(i, "overlap", f"blob bounding box aspect {aspect:.2f}: merged shadows")
-            continue
-        # second moments of the blob: axis ratio and filling of its moment ellipse
-        mom = cv2.moments((labels[y0:y0 + h, x0:x0 + w] == i + 1).view(np.uint8), binaryImage=True)
-        mu20, mu02, mu11 = mom["mu20"] / mom["m00"], mom["mu02"] / mom["m00"], mom["mu11"] / mom["m00"]
-        tr_, dd_ = mu20 + mu02, np.sqrt(max((mu20 - mu02) ** 2 + 4 * mu11 ** 2, 0.0))
-        l1, l2 = 0.5 * (tr_ + dd_), 0.5 * (tr_ - dd_)
-        m_ratio = np.sqrt(l1 / l2) if l2 > 0 else np.inf
-        if m_ratio > st.max_axis_ratio:
-            reject(i, "overlap", f"blob moment axis ratio {m_ratio:.2f} > {st.max_axis_ratio}: merged shadows")
-            continue
-        cand.append(i)
+        box = shadows[y0:y0 + h, x0:x0 + w]
+        box[labels[y0:y0 + h, x0:x0 + w] == i + 1] = 0
+    for s_, _, blob, _, _ in pieces:
+        x0, y0, w, h = (int(v) for v in s_[:4])
+        shadows[y0:y0 + h, x0:x0 + w] |= blob.view(np.uint8)
+    shadows = cv2.dilate(shadows, np.ones((5, 5), np.uint8))
+    kp = np.array(keep, dtype=np.float64).reshape(-1, 4)
+    return _Candidates(index=np.arange(kp.shape[0]), centre=kp[:, :2].copy(), radius=kp[:, 2].copy(),
+                       area=kp[:, 3].copy(), shadows=shadows)
 
-    # --- proximity: penumbrae of neighbours interact. Compared against every
-    # blob of noticeable size, including rejected ones (a merged pair or the
-    # tube's band still casts its shadow), by the distance to its bounding box.
-    if cand:
-        others = np.nonzero(d_eq >= max(3.0, 0.5 * dmin))[0]
-        x0b = stats[others, 0].astype(np.float64) - 0.5
-        y0b = stats[others, 1].astype(np.float64) - 0.5
-        x1b = x0b + stats[others, 2]
-        y1b = y0b + stats[others, 3]
-        wb, hb = stats[others, 2], stats[others, 3]
-        roundish = (d_eq[others] <= dmax) & (np.maximum(wb, hb) <= 1.3 * np.minimum(wb, hb))
-        keep = []
-        for i in cand:
-            cx, cy = cents[i]
-            gx = np.maximum(np.maximum(x0b - cx, cx - x1b), 0.0)
-            gy = np.maximum(np.maximum(y0b - cy, cy - y1b), 0.0)
-            gap = np.hypot(gx, gy) - 0.5 * d_eq[i]
-            # round single-sphere blobs: centre distance minus both radii
-            gap = np.where(roundish, np.hypot(cents[others, 0] - cx, cents[others, 1] - cy)
-                           - 0.5 * d_eq[i] - 0.5 * d_eq[others], gap)
-            gap[others == i] = np.inf
-            k = int(np.argmin(gap))
-            if gap[k] < st.proximity_margin_px:
-                reject(i, "overlap", f"gap {max(gap[k], 0.0):.1f} px to a neighbouring shadow "
-                                     f"< {st.proximity_margin_px:.1f} px")
-            else:
-                keep.append(i)
-        cand = keep
 
-    if st.vertical_background and st.repair_horizontal_steps and cand:
-        corners = _repair_horizontal_steps(trans, bg16, stats, cand, rows, cols)
-        for i in corners:
-            reject(i, "background_structure", "a horizontal background step (tube end rim) meets a stronger "
-                                              "vertical one (wall band) across the shadow: no background fits")
-        dropped = set(corners)
-        cand = [i for i in cand if i not in dropped]
+# --------------------------------------------------------------------------- stage 4: local background
 
-    n_fits = 0
-    if not cand:
-        return _assemble([], rej_c, rej_a, rej_r, rej_d, bg, n_fits, sdd_px, principal_point_px, trans.shape,
-                         "no sphere shadow accepted")
+@dataclass
+class _LocalBackground:
+    """Per candidate: background B(u, v) = a(u) + b(u) v on a grid turned so that u runs across
+    the dominant background structure (steps, bands) and v along it."""
+    origin: np.ndarray      # (C, 2) grid origin (integer pixel)
+    eu: np.ndarray          # (C, 2) unit vector of u in the image
+    ev: np.ndarray          # (C, 2)
+    umin: int               # first u of the grid (u = umin + index)
+    a: np.ndarray           # (C, U)
+    b: np.ndarray           # (C, U)
+    edge_gradient: np.ndarray  # (C, U) relative change of a over +-2 px of u
+    structure: np.ndarray   # (C,) rms misfit of the model on the background samples / noise
+    coherence: np.ndarray   # (C,)
+    minor: np.ndarray       # (C,) gradient energy along the structure / the noise's
 
-    # --- sub-pixel edges along rays (vectorised over candidates)
-    cand = np.array(cand)
-    nc = len(cand)
-    centre = cents[cand].copy()
-    radius = 0.5 * d_eq[cand]
+
+def _local_backgrounds(trans, bg, cand, st):
+    """Background of each shadow from its surroundings, with no assumption about the holder.
+
+    The direction of the strongest structure around the shadow comes from the structure
+    tensor of the frame's gradients outside every shadow; orientations within ``snap_deg`` of
+    the pixel axes are snapped to them (exact pixel sampling). On a grid turned to that
+    direction (u across, v along the structure) each line of constant u is fitted by a
+    straight line in v through the samples outside the shadow (radius + ``exclusion_px``,
+    other shadows masked, samples 4 noise sd below the first fit dropped in a second round),
+    so a step or band of any orientation through the shadow, and any smooth gradient, are
+    interpolated across it. Also repairs hot pixels in the windows (see
+    :func:`_repair_hot_pixels`), in place."""
+    c = cand.centre
+    nc = c.shape[0]
+    r = cand.radius
+    rows, cols = trans.shape
+    w_out = np.maximum(0.5 * r, 4.0)
+    rex = r + st.exclusion_px
+    U = int(np.ceil(np.max(r + w_out))) + 3
+    V = int(np.ceil(np.max(rex + np.maximum(0.5 * r, st.background_span_px))))
+    R = max(U, V) + 1
+    origin = np.rint(c)
+    oi = origin.astype(np.intp)
+    off = np.arange(-R, R + 1)
+    yy = np.clip(oi[:, 1, None, None] + off[None, :, None], 0, rows - 1)
+    xx = np.clip(oi[:, 0, None, None] + off[None, None, :], 0, cols - 1)
+    win = trans[yy, xx]                                            # (C, 2R+1, 2R+1) float32
+    hot = _repair_hot_pixels(trans, win, yy, xx, cand.noise, st)
+    shadow = cand.shadows[yy, xx]
+    # orientation: structure tensor of the window's gradients off the shadows
+    keep = (shadow[:, 1:-1, 1:-1] == 0)
+    gx_ = (win[:, 1:-1, 2:] - win[:, 1:-1, :-2]) * keep
+    gy_ = (win[:, 2:, 1:-1] - win[:, :-2, 1:-1]) * keep
+    jxx = np.sum(gx_ * gx_, axis=(1, 2), dtype=np.float64)
+    jyy = np.sum(gy_ * gy_, axis=(1, 2), dtype=np.float64)
+    jxy = np.sum(gx_ * gy_, axis=(1, 2), dtype=np.float64)
+    theta = 0.5 * np.arctan2(2 * jxy, jxx - jyy)            # direction of the strongest gradient
+    root = np.sqrt((jxx - jyy) ** 2 + 4 * jxy ** 2)
+    coh = root / np.maximum(jxx + jyy, 1e-30)
+    # gradient energy along the structure (minor eigenvalue) over what the noise gives
+    # (a central difference has variance 2 sigma^2 at the open-beam level)
+    n_keep = np.maximum(np.count_nonzero(keep, axis=(1, 2)), 1)
+    minor = 0.5 * (jxx + jyy - root) / (2.0 * cand.noise ** 2 * n_keep)
+    snap = np.deg2rad(st.snap_deg)
+    q = np.round(theta / (0.5 * np.pi)) * (0.5 * np.pi)
+    snapped = np.abs(theta - q) < snap
+    theta = np.where(snapped, q, theta)
+    if st.fixed_orientation_deg is not None:       # for comparisons only: one direction everywhere
+        theta = np.full(nc, np.deg2rad(st.fixed_orientation_deg))
+        snapped = np.abs(np.sin(2 * theta)) < 1e-9
+    eu = np.stack([np.cos(theta), np.sin(theta)], axis=1)
+    eu = np.where(np.abs(eu) < 1e-9, 0.0, np.where(snapped[:, None], np.rint(eu), eu))
+    ev = np.stack([-eu[:, 1], eu[:, 0]], axis=1)
+    us = np.arange(-U, U + 1, dtype=np.float32)
+    vs = np.arange(-V, V + 1, dtype=np.float32)
+    e32 = eu.astype(np.float32)
+    v32 = ev.astype(np.float32)
+    dxg = e32[:, 0, None, None] * us[None, :, None] + v32[:, 0, None, None] * vs[None, None, :]
+    dyg = e32[:, 1, None, None] * us[None, :, None] + v32[:, 1, None, None] * vs[None, None, :]
+    o32 = origin.astype(np.float32)
+    px = o32[:, 0, None, None] + dxg
+    py = o32[:, 1, None, None] + dyg
+    inside = (px >= 0) & (px <= cols - 1) & (py >= 0) & (py <= rows - 1)
+    s = np.empty(px.shape, np.float32)
+    sh = np.empty(px.shape, np.uint8)
+    if np.any(snapped):               # exact pixels, gathered from the windows
+        k = np.nonzero(snapped)[0]
+        ix = (R + np.rint(dxg[k])).astype(np.intp)
+        iy = (R + np.rint(dyg[k])).astype(np.intp)
+        kk = np.arange(k.size)[:, None, None]
+        s[k] = win[k[kk], iy, ix]
+        sh[k] = shadow[k[kk], iy, ix]
+    if not np.all(snapped):
+        k = np.nonzero(~snapped)[0]
+        s[k] = _bilinear(trans, np.clip(px[k], 0, cols - 1), np.clip(py[k], 0, rows - 1))
+        sh[k] = cand.shadows[np.clip(np.rint(py[k]).astype(np.intp), 0, rows - 1),
+                             np.clip(np.rint(px[k]).astype(np.intp), 0, cols - 1)]
+    dx = dxg + (o32[:, 0] - c[:, 0]).astype(np.float32)[:, None, None]
+    dy = dyg + (o32[:, 1] - c[:, 1]).astype(np.float32)[:, None, None]
+    noise = cand.noise
+    wgt = (inside & (dx * dx + dy * dy > (rex * rex).astype(np.float32)[:, None, None]) & (sh == 0)).astype(np.float32)
+    vv = vs[None, None, :]
+    a, b = _line_fit(s, wgt, vv)
+    fit = a[:, :, None] + b[:, :, None] * vv
+    wgt *= s > fit * np.float32(1.0 - 4.0 * noise)
+    a, b = _line_fit(s, wgt, vv)
+    res = (s - (a[:, :, None] + b[:, :, None] * vv)) * wgt
+    n_used = np.maximum(np.sum(wgt, axis=(1, 2)), 1.0)
+    structure = (np.sqrt(np.sum(res * res, axis=(1, 2), dtype=np.float64) / n_used)
+                 / (noise * np.maximum(np.median(a, axis=1), 1e-6)))
+    ap = np.pad(a, ((0, 0), (2, 2)), mode="edge")
+    grad = np.abs(ap[:, 4:] - ap[:, :-4]) / np.maximum(a, 1e-6)
+    return _LocalBackground(origin=origin, eu=eu, ev=ev, umin=-U, a=a.astype(np.float64), b=b.astype(np.float64),
+                            edge_gradient=grad, structure=structure, coherence=coh, minor=minor), hot
+
+
+def _line_fit(s, w, v):
+    """Weighted straight line s = a + b v along the last axis; constant where one side is empty."""
+    s0 = np.sum(w, axis=2)
+    s1 = np.sum(w * v, axis=2)
+    s2 = np.sum(w * v * v, axis=2)
+    sy = np.sum(w * s, axis=2)
+    syv = np.sum(w * s * v, axis=2)
+    det = s0 * s2 - s1 * s1
+    n_lo = np.sum(w * (v < 0), axis=2)
+    n_hi = np.sum(w * (v > 0), axis=2)
+    two = (n_lo >= 2) & (n_hi >= 2) & (det > 1e-9)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = np.where(two, (sy * s2 - s1 * syv) / det, sy / np.maximum(s0, 1e-12))
+        b = np.where(two, (s0 * syv - s1 * sy) / det, 0.0)
+    # a line with no usable sample at all: nearest usable line
+    empty = s0 < 1
+    if np.any(empty):
+        for k in np.nonzero(empty.any(axis=1))[0]:
+            good = np.nonzero(~empty[k])[0]
+            if good.size == 0:
+                a[k] = 1.0
+                continue
+            bad = np.nonzero(empty[k])[0]
+            a[k, bad] = np.interp(bad, good, a[k, good])
+            b[k, bad] = 0.0
+    return a, b
+
+
+def _background_at(model, x, y):
+    """B of every candidate at image points x, y of shape (C, ...)."""
+    ox = model.origin[:, 0].reshape((-1,) + (1,) * (x.ndim - 1))
+    oy = model.origin[:, 1].reshape((-1,) + (1,) * (x.ndim - 1))
+    eux = model.eu[:, 0].reshape(ox.shape)
+    euy = model.eu[:, 1].reshape(ox.shape)
+    u = (x - ox) * eux + (y - oy) * euy
+    v = (x - ox) * (-euy) + (y - oy) * eux
+    n = model.a.shape[1]
+    fu = np.clip(u - model.umin, 0.0, n - 1.000001)
+    i0 = np.floor(fu).astype(np.intp)
+    f = fu - i0
+    C = x.shape[0]
+    flat_i = (np.arange(C).reshape(ox.shape) * n + i0)
+    a = model.a.ravel()
+    b = model.b.ravel()
+    a_u = a[flat_i] * (1 - f) + a[flat_i + 1] * f
+    b_u = b[flat_i] * (1 - f) + b[flat_i + 1] * f
+    return a_u + b_u * v, u
+
+
+# --------------------------------------------------------------------------- stage 6-7: edges and fits
+
+@dataclass
+class _Measurement:
+    ok: np.ndarray
+    why: list
+    fits: np.ndarray        # (C, 5)
+    n_pts: np.ndarray
+    rms: np.ndarray
+    s2: np.ndarray          # (C,) dof-corrected edge variance
+    normals: list           # per candidate (nx, ny) arrays of the final fit
+    qmin: np.ndarray
+    edge_frac: np.ndarray   # fraction of edge points on a strong background edge
+    n_fits: int
+    edge_shift: np.ndarray  # (C, 2) centre minus the centre fitted without background-edge points
+
+
+def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True):
+    """Sub-pixel edge points along rays (vectorised over candidates).
+
+    Pass 1: ``n_rays/2`` rays over the whole edge zone, which also measure the inner shadow
+    level (the iso-level is half way between the local background, 1, and that level);
+    later passes: ``n_rays`` rays on a narrow band round the previous fit. Returns
+    (ex, ey, valid, level, qmin, on_edge (C, R) bool, n_rays)."""
+    nc = centre.shape[0]
+    nr = max(16, int(st.n_rays) // 2) if (first and st.n_passes > 1) else int(st.n_rays)
+    phi = (np.arange(nr) + 0.5) * (2 * np.pi / nr)
+    cphi, sphi = np.cos(phi), np.sin(phi)
+    if first:
+        ns = int(st.n_samples)
+        w_out = np.maximum(0.5 * radius, 4.0)
+        w_in = np.minimum(w_out, 0.6 * radius)
+    else:
+        ns = max(8, int(st.n_samples) // 2)
+        w_out = np.minimum(np.maximum(0.25 * radius, 3.0), 0.5 * radius)
+        w_in = w_out
+    t = np.linspace(0.0, 1.0, ns)
+    r_s = (radius - w_in)[:, None] + (w_in + w_out)[:, None] * t[None, :]
+    xs = centre[:, 0, None, None] + cphi[None, :, None] * r_s[:, None, :]
+    ys = centre[:, 1, None, None] + sphi[None, :, None] * r_s[:, None, :]
+    prof = _bilinear(trans, xs, ys)
+    bgl, _ = _background_at(model, xs, ys)
+    q = prof / bgl
+    qmin = None
+    if first:
+        n_in = max(2, ns // 10)
+        q_in = np.median(q[:, :, :n_in].reshape(nc, -1), axis=1)
+        qmin = np.minimum(np.min(q[:, :, :n_in], axis=(1, 2)), q_in)
+        level = 1.0 - st.edge_level * (1.0 - q_in)
+    below = q < level[:, None, None]
+    last = ns - 1 - np.argmax(below[:, :, ::-1], axis=2)
+    valid = below.any(axis=2) & (last < ns - 1) & (last > 0)
+    k = np.clip(last, 0, ns - 2)
+    q0 = np.take_along_axis(q, k[..., None], axis=2)[..., 0]
+    q1 = np.take_along_axis(q, (k + 1)[..., None], axis=2)[..., 0]
+    dq = q1 - q0
+    valid &= dq > 0
+    frac = np.where(valid, (level[:, None] - q0) / np.where(dq > 0, dq, 1.0), 0.0)
+    dr = (w_in + w_out) / (ns - 1)
+    r_edge = r_s[np.arange(nc)[:, None], k] + frac * dr[:, None]
+    ex = centre[:, 0, None] + cphi[None, :] * r_edge
+    ey = centre[:, 1, None] + sphi[None, :] * r_edge
+    # edge points where the background itself changes fast across the structure (> gradient
+    # over 4 px): a band or step edge, whose sub-pixel mixing with the shadow no division undoes
+    on_edge = None
+    if want_edge:
+        ox, oy = model.origin[:, 0, None], model.origin[:, 1, None]
+        u = (ex - ox) * model.eu[:, 0, None] + (ey - oy) * model.eu[:, 1, None]
+        n = model.a.shape[1]
+        iu = np.clip(np.rint(u - model.umin).astype(np.intp), 0, n - 1)
+        g = np.take_along_axis(model.edge_gradient, iu, axis=1)
+        on_edge = valid & (g > st.background_edge_gradient)
+    return ex, ey, valid, level, qmin, on_edge, nr
+
+
+def _measure_edges_and_fit(trans, model, cand, st):
+    """Edge points and ellipse fits, ``n_passes`` passes, each re-centred on the previous fit;
+    the last pass removes outliers (5 robust sd, at least 0.1 px) once and refits."""
+    nc = cand.centre.shape[0]
+    centre = cand.centre.copy()
+    radius = cand.radius.copy()
     ok = np.ones(nc, bool)
+    why = [""] * nc
     fits = np.full((nc, 5), np.nan)
     n_pts = np.zeros(nc, int)
     rms = np.full(nc, np.nan)
-    cov = np.full((nc, 2, 2), np.nan)
-    why = [""] * nc
-    level = None
+    s2 = np.full(nc, np.nan)
+    normals = [None] * nc
+    shift = np.zeros((nc, 2))
     edge_frac = np.zeros(nc)
+    level = qmin = None
+    n_fits = 0
     for pas in range(int(st.n_passes)):
         first = pas == 0
-        # pass 1: coarse rays over the whole edge zone, also measures the local
-        # background plane and the iso-level; later passes: full ray count on a
-        # narrow band round the previous fit, re-using background and level.
-        nr = max(16, int(st.n_rays) // 2) if (first and st.n_passes > 1) else int(st.n_rays)
-        phi = (np.arange(nr) + 0.5) * (2 * np.pi / nr)
-        cphi, sphi = np.cos(phi), np.sin(phi)
+        last_pass = pas == int(st.n_passes) - 1
+        ex, ey, valid, level, qm, on_edge, nr = _edge_points(trans, model, centre, radius, st, first, level,
+                                                             want_edge=last_pass)
         if first:
-            ns = int(st.n_samples)
-            w_out = np.maximum(0.5 * radius, 4.0)
-            w_in = np.minimum(w_out, 0.6 * radius)
-        else:
-            ns = max(8, int(st.n_samples) // 2)
-            w_out = np.minimum(np.maximum(0.25 * radius, 3.0), 0.5 * radius)
-            w_in = w_out
-        t = np.linspace(0.0, 1.0, ns)
-        r_s = (radius - w_in)[:, None] + (w_in + w_out)[:, None] * t[None, :]           # (C, S)
-        dxs = cphi[None, :, None] * r_s[:, None, :]                                      # (C, R, S)
-        dys = sphi[None, :, None] * r_s[:, None, :]
-        prof = _bilinear(trans, centre[:, 0, None, None] + dxs, centre[:, 1, None, None] + dys)
-        if first:
-            # local planar background from the outer 20 % of each profile
-            n_out = max(3, ns // 5)
-            ob = prof[:, :, -n_out:]
-            oxs = dxs[:, :, -n_out:]
-            oys = dys[:, :, -n_out:]
-            b0 = np.median(ob.reshape(nc, -1), axis=1)
-            # ring samples darkened by a neighbour's tail do not enter the plane
-            wr = (ob > b0[:, None, None] * (1.0 - 0.5 * st.segment_depth)).astype(np.float64)
-            res0 = (ob - b0[:, None, None]) * wr
-            bx = np.sum(res0 * oxs, axis=(1, 2)) / np.maximum(np.sum(wr * oxs ** 2, axis=(1, 2)), 1e-9)
-            by = np.sum(res0 * oys, axis=(1, 2)) / np.maximum(np.sum(wr * oys ** 2, axis=(1, 2)), 1e-9)
-            bg_origin = centre.copy()
-        offx = centre[:, 0] - bg_origin[:, 0]
-        offy = centre[:, 1] - bg_origin[:, 1]
-        bgl = ((b0 + bx * offx + by * offy)[:, None, None] + bx[:, None, None] * dxs
-               + by[:, None, None] * dys)
-        q = prof / bgl
-        if first:
-            n_in = max(2, ns // 10)
-            q_in = np.median(q[:, :, :n_in].reshape(nc, -1), axis=1)
-            qmin = np.minimum(np.min(q[:, :, :n_in], axis=(1, 2)), q_in)
-            level = 1.0 - st.edge_level * (1.0 - q_in)
-        below = q < level[:, None, None]
-        # outermost sample below the level, crossing to the next one outward
-        last = ns - 1 - np.argmax(below[:, :, ::-1], axis=2)
-        valid = below.any(axis=2) & (last < ns - 1) & (last > 0)
-        k = np.clip(last, 0, ns - 2)
-        q0 = np.take_along_axis(q, k[..., None], axis=2)[..., 0]
-        q1 = np.take_along_axis(q, (k + 1)[..., None], axis=2)[..., 0]
-        dq = q1 - q0
-        valid &= dq > 0
-        frac = np.where(valid, (level[:, None] - q0) / np.where(dq > 0, dq, 1.0), 0.0)
-        dr = (w_in + w_out) / (ns - 1)
-        r_edge = r_s[np.arange(nc)[:, None], k] + frac * dr[:, None]
-        ex = centre[:, 0, None] + cphi[None, :] * r_edge
-        ey = centre[:, 1, None] + sphi[None, :] * r_edge
-        if st.vertical_background and pas == int(st.n_passes) - 1:
-            # edge points where the background itself changes fast across columns (a tube-wall
-            # band edge): pixel averaging and blur mix shadow and band multiplicatively, which
-            # dividing by the background cannot undo, so those centres carry extra column variance
-            xi = np.clip(np.rint(ex).astype(np.intp), 2, cols - 3)
-            yi = np.clip(np.rint(ey).astype(np.intp), 0, rows - 1)
-            gb = np.abs(bg16[yi, xi + 2].astype(np.float32) - bg16[yi, xi - 2].astype(np.float32))
-            strong = valid & (gb > st.background_edge_gradient * np.maximum(bg16[yi, xi].astype(np.float32), 1.0))
-            edge_frac = np.count_nonzero(strong, axis=1) / np.maximum(np.count_nonzero(valid, axis=1), 1)
+            qmin = qm
+        if last_pass:
+            edge_frac = np.count_nonzero(on_edge, axis=1) / np.maximum(np.count_nonzero(valid, axis=1), 1)
         for c in range(nc):
             if not ok[c]:
                 continue
@@ -819,11 +1235,11 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
                 why[c] = f"only {np.count_nonzero(v)} of {nr} rays found an edge"
                 continue
             pts = np.stack([ex[c, v], ey[c, v]], axis=1)
-            last_pass = pas == int(st.n_passes) - 1
+            oe = on_edge[c, v] if on_edge is not None else np.zeros(int(np.count_nonzero(v)), bool)
             try:
                 p = _fit_one(pts, st.ellipse_fitter)
                 n_fits += 1
-                if not last_pass:       # intermediate passes only re-centre the rays
+                if not last_pass:
                     if np.all(np.isfinite(p)) and p[3] > 0:
                         fits[c] = p
                     else:
@@ -831,11 +1247,11 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
                         why[c] = "ellipse fit returned a degenerate ellipse"
                     continue
                 d, nx, ny = _ellipse_residuals(pts, p)
-                # one round of outlier removal (5 x robust sigma, at least 0.1 px)
                 sig = 1.2533 * np.mean(np.abs(d))
                 good = np.abs(d) <= max(5.0 * sig, 0.1)
                 if not good.all() and np.count_nonzero(good) >= st.min_edge_fraction * nr:
                     pts = pts[good]
+                    oe = oe[good]
                     p = _fit_one(pts, st.ellipse_fitter)
                     n_fits += 1
                     d, nx, ny = _ellipse_residuals(pts, p)
@@ -849,108 +1265,155 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
                 continue
             fits[c] = p
             n_pts[c] = len(pts)
-            dof = max(1, len(pts) - 5)
-            s2 = float(np.dot(d, d)) / dof
+            s2[c] = float(np.dot(d, d)) / max(1, len(pts) - 5)
             rms[c] = np.sqrt(np.mean(d ** 2))
-            sxx, sxy, syy = np.dot(nx, nx), np.dot(nx, ny), np.dot(ny, ny)
-            det_ = sxx * syy - sxy * sxy
-            # neighbouring rays share pixels: about one independent edge sample
-            # per 2 px of perimeter (pi r), so inflate by n / (pi r) when larger
-            infl = max(1.0, len(pts) / (np.pi * np.sqrt(p[2] * p[3])))
-            cov[c] = (infl * s2 / det_) * np.array([[syy, -sxy], [-sxy, sxx]]) if det_ > 0 else np.nan
+            normals[c] = (nx, ny, d, oe)
+            oe_w = oe
+            if st.background_edge_refit and np.any(oe) and np.count_nonzero(~oe_w) >= max(8, 0.5 * len(oe)):
+                # the same fit without the points on a background edge: the difference is the
+                # data's own estimate of what the band or step does to this centre
+                try:
+                    p2 = _fit_one(pts[~oe_w], st.ellipse_fitter)
+                    n_fits += 1
+                    if np.all(np.isfinite(p2)):
+                        shift[c] = p[:2] - p2[:2]
+                except cv2.error:
+                    pass
         centre = np.where(ok[:, None], fits[:, :2], centre)
         radius = np.where(ok, np.sqrt(np.abs(fits[:, 2] * fits[:, 3])), radius)
+    return _Measurement(ok=ok, why=why, fits=fits, n_pts=n_pts, rms=rms, s2=s2, normals=normals,
+                        qmin=qmin, edge_frac=edge_frac, n_fits=n_fits, edge_shift=shift)
 
-    # --- post-fit screening
-    accepted = []
-    depth_all = -np.log(np.clip(qmin, 1e-6, None))
+
+# --------------------------------------------------------------------------- stage 8-9: rejection, uncertainty
+
+def _screen_fits(meas, cand, model, st, drange, rej):
+    """Post-fit screening; returns the indices (into the candidates) of accepted shadows."""
+    if drange is not None:
+        dmin = drange[0] * (1.0 - st.size_tolerance)
+        dmax = drange[1] * (1.0 + st.size_tolerance)
+    ok = meas.ok
+    # misfit of the background model relative to the frame's typical one (noise, compression)
+    misfit = model.structure / max(float(np.median(model.structure)), 1e-9)
+    cross = model.minor / max(float(np.median(model.minor)), 1e-9)
+    depth_all = -np.log(np.clip(meas.qmin, 1e-6, None))
     depth_ref = float(np.median(depth_all[ok])) if np.any(ok) else np.nan
-    for c, i in enumerate(cand):
+    out = []
+    for c in range(len(cand.index)):
+        where, a = cand.centre[c], cand.area[c]
         if not ok[c]:
-            reject(i, "fit_failed", why[c])
+            rej.add(where, a, "fit_failed", meas.why[c])
             continue
-        p = fits[c]
+        p = meas.fits[c]
         ratio = p[2] / p[3]
-        contrast = 1.0 - qmin[c]
+        contrast = 1.0 - meas.qmin[c]
         if contrast < st.min_contrast:
-            reject(i, "not_a_sphere_contrast", f"shadow depth {contrast:.3f} < {st.min_contrast}")
+            rej.add(where, a, "not_a_sphere_contrast", f"shadow depth {contrast:.3f} < {st.min_contrast}")
             continue
         if ratio > st.max_axis_ratio:
-            reject(i, "overlap", f"axis ratio {ratio:.3f} > {st.max_axis_ratio}: elongated (merged) shadow")
+            rej.add(where, a, "overlap", f"axis ratio {ratio:.3f} > {st.max_axis_ratio}: elongated (merged) shadow")
             continue
-        if rms[c] > st.max_fit_rms_px:
-            reject(i, "not_a_sphere_shape", f"edge RMS {rms[c]:.3f} px > {st.max_fit_rms_px} px: not elliptical")
+        if meas.rms[c] > st.max_fit_rms_px:
+            rej.add(where, a, "not_a_sphere_shape", f"edge RMS {meas.rms[c]:.3f} px > {st.max_fit_rms_px} px: "
+                                                    "not elliptical")
             continue
         if drange is not None:
             dfit = 2.0 * np.sqrt(p[2] * p[3])
             if not (dmin <= dfit <= dmax):
-                reject(i, "not_a_sphere_size", f"fitted diameter {dfit:.1f} px outside [{dmin:.1f}, {dmax:.1f}]")
+                rej.add(where, a, "not_a_sphere_size", f"fitted diameter {dfit:.1f} px outside "
+                                                       f"[{dmin:.1f}, {dmax:.1f}]")
                 continue
         if (st.overlap_darkness is not None and np.isfinite(depth_ref) and np.count_nonzero(ok) >= 3
                 and depth_all[c] > st.overlap_darkness * depth_ref):
-            reject(i, "overlap", f"shadow optical depth {depth_all[c]:.2f} > {st.overlap_darkness} x median "
-                                 f"{depth_ref:.2f}: spheres in line")
+            rej.add(where, a, "overlap", f"shadow optical depth {depth_all[c]:.2f} > {st.overlap_darkness} x "
+                                         f"median {depth_ref:.2f}: spheres in line")
             continue
-        on_edge = bool(edge_frac[c] > st.background_edge_min_fraction)
-        cv = cov[c].copy()
-        if on_edge:
-            cv[0, 0] += st.background_edge_sigma_px ** 2
-        accepted.append((c, fits[c], n_pts[c], rms[c], cv, qmin[c], on_edge))
-    return _assemble(accepted, rej_c, rej_a, rej_r, rej_d, bg, n_fits, sdd_px, principal_point_px,
-                     trans.shape, "")
-
-
-def _repair_horizontal_steps(trans, bg16, stats, cand, rows, cols, min_step=0.01):
-    """Repair the vertical-closing background under shadows that straddle a horizontal step.
-
-    The vertical closing fills each sphere shadow from above and below. When a roughly
-    horizontal background step (the tube's end rim, ~2-3 %) crosses the shadow, it cannot know
-    where inside the shadow the step lies and puts it at the shadow's border, so part of the
-    shadow is normalised by the wrong level: a row bias of 0.04-0.10 px. Where the closing's
-    background above and below a shadow differ by more than ``min_step`` (relative) AND by more
-    than its left and right sides do (a vertical tube-band edge is the closing's own case), the
-    background in the shadow's box is replaced by the row-by-row linear interpolation between
-    the closing's values in the columns just left and right of the box (exact there: those
-    columns do not cross the shadow) and that box of ``trans`` is renormalised, in place.
-    Returns the candidates where a horizontal step meets a stronger vertical one (a corner of
-    rim and band), for which no background model holds.
-    """
-    corners = []
-    for i in cand:
-        x0, y0, w, h = (int(v) for v in stats[i, :4])
-        m = max(3, int(0.3 * max(w, h)) + 1)
-        ya, yb = y0 - m, y0 + h + m
-        xl, xr = x0 - m, x0 + w + m - 1
-        if ya < 0 or xl < 0 or yb > rows or xr >= cols:
+        if cross[c] > st.max_cross_structure:
+            rej.add(where, a, "background_structure",
+                    f"background changes along its main structure too ({cross[c]:.1f} x the frame's median "
+                    f"> {st.max_cross_structure}): a corner of two steps or bands, no background model holds")
             continue
-        above = float(np.mean(bg16[ya:y0, x0:x0 + w]))
-        below = float(np.mean(bg16[y0 + h:yb, x0:x0 + w]))
-        if abs(above - below) <= min_step * max(above, below, 1.0):
+        if misfit[c] > st.max_background_misfit:
+            rej.add(where, a, "background_structure",
+                    f"background round the shadow misfits a straight structure {misfit[c]:.1f} x as much as the "
+                    f"frame's median shadow (> {st.max_background_misfit}): a corner or curved step")
             continue
-        old = bg16[ya:yb, xl:xr + 1].astype(np.float32)
-        left, right = old[:, :1], old[:, -1:]
-        if abs(float(left.mean()) - float(right.mean())) >= abs(above - below):
-            # a step above/below AND a stronger one left/right: the corner of the end rim and a
-            # wall band; neither the closing nor the interpolation holds (row errors ~0.1 px)
-            corners.append(i)
-            continue
-        f = np.linspace(0.0, 1.0, xr - xl + 1, dtype=np.float32)[None, :]
-        trans[ya:yb, xl:xr + 1] *= old / np.maximum(left + (right - left) * f, 1.0)
-    return corners
+        out.append(c)
+    return out
 
 
-def _assemble(accepted, rej_c, rej_a, rej_r, rej_d, bg, n_fits, sdd_px, pp, shape, message):
+def _centre_uncertainty(accepted, meas, model, st):
+    """Centre covariance ``f s^2 (sum n n^T)^-1`` per accepted shadow (s the edge RMS,
+    f = max(1, n / (pi r)) for neighbouring rays sharing pixels), plus
+    ``background_edge_sigma_px`` in quadrature across the structure for shadows whose edge
+    crosses a background edge. Returns a list of (c, cov, on_edge)."""
+    out = []
+    for c in accepted:
+        nx, ny, d, oe = meas.normals[c]
+        p = meas.fits[c]
+        sxx, sxy, syy = np.dot(nx, nx), np.dot(nx, ny), np.dot(ny, ny)
+        det_ = sxx * syy - sxy * sxy
+        infl = max(1.0, meas.n_pts[c] / (np.pi * np.sqrt(p[2] * p[3])))
+        if det_ <= 0:
+            out.append((c, np.full((2, 2), np.nan), False))
+            continue
+        ainv = np.array([[syy, -sxy], [-sxy, sxx]]) / det_
+        cov = infl * meas.s2[c] * ainv
+        on_edge = bool(meas.edge_frac[c] > st.background_edge_min_fraction)
+        if on_edge and st.background_edge_clusters:
+            # edge points on a background edge (band or step) err together: each run of them is
+            # one cluster of a cluster-robust (sandwich) covariance, from their own residuals
+            runs = _runs(oe)
+            m = np.zeros((2, 2))
+            for g in runs:
+                sg = np.array([np.dot(nx[g], d[g]), np.dot(ny[g], d[g])])
+                m += np.outer(sg, sg)
+            cov = cov + st.background_edge_clusters * (ainv @ m @ ainv)
+        if on_edge and st.background_edge_refit:
+            cov = cov + np.outer(meas.edge_shift[c], meas.edge_shift[c])
+        if on_edge and st.background_edge_sigma_px:
+            cov = cov + st.background_edge_sigma_px ** 2 * np.outer(model.eu[c], model.eu[c])
+        out.append((c, cov, on_edge))
+    return out
+
+
+def _runs(flags):
+    """Index arrays of the runs of True in a cyclic boolean sequence (points in ray order)."""
+    f = np.asarray(flags, bool)
+    n = f.size
+    if n == 0 or not f.any():
+        return []
+    if f.all():
+        return [np.arange(n)]
+    start = int(np.argmin(f))                 # rotate so the sequence starts on a False
+    idx = np.roll(np.arange(n), -start)
+    ff = f[idx]
+    out, cur = [], []
+    for i, v in zip(idx, ff):
+        if v:
+            cur.append(i)
+        elif cur:
+            out.append(np.array(cur))
+            cur = []
+    if cur:
+        out.append(np.array(cur))
+    return out
+
+
+def _assemble(accepted, rej, n_fits, sdd_px, pp, shape, hot, message, meas=None, cand=None, model=None):
     m = len(accepted)
+    on_edge = np.zeros(m, dtype=bool)
     if m:
-        fits = np.array([a[1] for a in accepted])
+        idx = np.array([a[0] for a in accepted])
+        fits = meas.fits[idx]
         centre = fits[:, :2].copy()
         axes = fits[:, 2:4].copy()
         ang = np.mod(fits[:, 4], np.pi)
-        npts = np.array([a[2] for a in accepted], dtype=int)
-        rms = np.array([a[3] for a in accepted])
-        cov = np.array([a[4] for a in accepted])
-        qmin = np.array([a[5] for a in accepted])
-        on_edge = np.array([a[6] for a in accepted], dtype=bool)
+        npts = meas.n_pts[idx].astype(int)
+        rms = meas.rms[idx]
+        cov = np.array([a[1] for a in accepted])
+        qmin = meas.qmin[idx]
+        on_edge = np.array([a[2] for a in accepted], dtype=bool) if len(accepted[0]) > 2 else on_edge
     else:
         centre = np.zeros((0, 2))
         axes = np.zeros((0, 2))
@@ -959,24 +1422,29 @@ def _assemble(accepted, rej_c, rej_a, rej_r, rej_d, bg, n_fits, sdd_px, pp, shap
         rms = np.zeros(0)
         cov = np.zeros((0, 2, 2))
         qmin = np.zeros(0)
-        on_edge = np.zeros(0, dtype=bool)
+    n_hot = np.zeros(m, dtype=int)
+    if m and len(hot):
+        d = np.linalg.norm(hot[None, :, :] - centre[:, None, :], axis=2)
+        n_hot = np.count_nonzero(d < 1.5 * axes[:, :1] + 4.0, axis=1)
     corrected = None
     if sdd_px is not None:
         if pp is None:
             pp = ((shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0)
         corrected = deng_correction(centre, axes, sdd_px, pp) if m else np.zeros((0, 2))
     rejected = RejectedCandidates(
-        centre_px=np.array(rej_c, dtype=np.float64).reshape(-1, 2),
-        area_px=np.array(rej_a, dtype=np.float64),
-        reason=tuple(rej_r), detail=tuple(rej_d))
+        centre_px=np.array(rej.centre, dtype=np.float64).reshape(-1, 2),
+        area_px=np.array(rej.area, dtype=np.float64),
+        reason=tuple(rej.reason), detail=tuple(rej.detail))
     if not message:
         counts = {r: rejected.count(r) for r in REJECT_REASONS if rejected.count(r)}
         message = f"{m} spheres accepted, {len(rejected)} rejected" + (f" {counts}" if counts else "")
+        if len(hot):
+            message += f"; {len(hot)} hot/dead pixels repaired"
     return FrameDetections(
         centre_px=centre, centre_corrected_px=corrected, centre_cov_px2=cov, semi_axes_px=axes,
         angle_rad=ang, n_edge_points=npts, fit_rms_px=rms, min_transmission=qmin, on_background_edge=on_edge,
-        rejected=rejected,
-        background=float(bg), success=m > 0, message=message, nfev=int(n_fits))
+        rejected=rejected, background=1.0, success=m > 0, message=message, nfev=int(n_fits),
+        n_hot_pixels=n_hot, hot_pixels_px=hot)
 
 
 # --------------------------------------------------------------------------- baselines

@@ -485,17 +485,28 @@ class _Scene:
     mu_t: float
     tube_df: tuple | None
     k1: float
+    holders: tuple = ()      # placed holders (core/holders.py), each with .line_integral(src, x, y)
 
 
-def _place_scene(w, m, a, t, ref, detector, settings) -> _Scene:
+def _place_scene(w, m, a, t, ref, detector, settings, holders=()) -> _Scene:
     at = true_rotary_angle(a, settings)
     tube = ref.tube
     mu_t = 0.0 if tube is None else (tube.mu_per_m if settings.mu_tube_per_m is None else settings.mu_tube_per_m)
     extra = None
     if tube is not None and mu_t > 0:
         extra = np.array([[0.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    anchors = [h.anchor_points_of() for h in holders]
+    if anchors:
+        extra = np.vstack(([] if extra is None else [extra]) + anchors)
     geom, centres, extra_df = _object_points_df(w, ref, m, at, extra)
     geom, centres, extra_df = render_effects.place(settings.effects, geom, centres, extra_df, a, t)
+    placed = []
+    if anchors:
+        k = 0 if not (tube is not None and mu_t > 0) else 2
+        for h, an in zip(holders, anchors):
+            placed.append(h.placed(extra_df[k:k + len(an)]))
+            k += len(an)
+        extra = extra[:2] if (tube is not None and mu_t > 0) else None
     truth, cp_m, ell_m = _truth_from_placed(ref, detector, settings, w, m, a, at, t, geom, centres)
     # textbook mode: evaluate sphere i's exact shadow at X + (ellipse centre - centre projection)
     shift = np.zeros((ref.n_spheres, 2))
@@ -508,7 +519,7 @@ def _place_scene(w, m, a, t, ref, detector, settings) -> _Scene:
                    tube.outer_radius_m, tube.inner_radius_m)
     return _Scene(truth, truth.source_df_m, centres, ref.radii_m, shift, ell_m,
                   float(settings.mu_sphere_per_m), float(mu_t), tube_df,
-                  float(settings.detector_distortion_k1_per_m2))
+                  float(settings.detector_distortion_k1_per_m2), tuple(placed))
 
 
 def _line_integrals(sc: _Scene, xs, ys, members) -> np.ndarray:
@@ -519,6 +530,8 @@ def _line_integrals(sc: _Scene, xs, ys, members) -> np.ndarray:
                                         sc.centres[j], sc.radii[j])
     if sc.tube_df is not None:
         line += sc.mu_t * tube_chords(sc.src, xs, ys, sc.tube_df)
+    for h in sc.holders:
+        line += h.line_integral(sc.src, xs, ys)
     return line
 
 
@@ -548,7 +561,7 @@ def render_projection_bruteforce(static_w, motion, alpha_rad, ref: ReferenceObje
 
 def render_projection(static_w, motion, alpha_rad, ref: ReferenceObject, detector: DetectorSpec,
                       settings: RenderSettings | None = None, rng: np.random.Generator | None = None,
-                      *, time_s: float = 0.0, output: str = "mono16") -> RenderedFrame:
+                      *, time_s: float = 0.0, output: str = "mono16", holders=()) -> RenderedFrame:
     """Render one cone-beam projection of a sphere reference object.
 
     Parameters
@@ -568,6 +581,8 @@ def render_projection(static_w, motion, alpha_rad, ref: ReferenceObject, detecto
         Acquisition time [s] (focal-spot drift).
     output : {"mono16", "transmission"}
         uint16 counts, or float32 I/I0 (noisy counts / I0 if poisson).
+    holders : sequence of core.holders.PlateHolder, optional
+        Extra absorbers in {OF} that turn with the object (e.g. an acrylic plate).
 
     Returns
     -------
@@ -576,14 +591,18 @@ def render_projection(static_w, motion, alpha_rad, ref: ReferenceObject, detecto
     settings, w, m, a, t = _check_render_call(static_w, motion, alpha_rad, ref, detector, settings, rng,
                                               time_s, output)
 
-    sc = _place_scene(w, m, a, t, ref, detector, settings)
+    sc = _place_scene(w, m, a, t, ref, detector, settings, tuple(holders))
     truth, ell_m, k1, src = sc.truth, sc.ell_m, sc.k1, sc.src
     tube, tube_df = ref.tube, sc.tube_df
     os_ = int(settings.oversample)
 
     trans = np.ones((detector.rows, detector.cols), dtype=np.float32)
     n_rays = 0
-    if tube_df is not None:
+    if sc.holders:      # holders (and the tube) over the whole frame, edges re-traced (core/holders.py)
+        from .holders import trace_background  # noqa: PLC0415
+        trans, n_rays = trace_background(lambda x, y: _line_integrals(sc, x, y, []), detector, k1,
+                                         int(settings.tube_oversample), _sample_points, settings.effects, src)
+    elif tube_df is not None:
         a0, ax = tube_df[0], tube_df[1]
         # bounding box of the tube's shadow from the 8 corners of its box
         u = np.cross(ax, [1.0, 0.0, 0.0])

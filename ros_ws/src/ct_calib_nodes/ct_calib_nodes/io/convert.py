@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-SUPPORTED_ENCODINGS = ("mono16", "32FC1")
+SUPPORTED_ENCODINGS = ("mono16", "16UC1", "mono8", "8UC1", "32FC1")
+_DTYPE = {"mono16": "u2", "16UC1": "u2", "mono8": "u1", "8UC1": "u1", "32FC1": "f4"}
 
 
 class MessageError(ValueError):
@@ -18,7 +19,11 @@ def stamp_ns(stamp) -> int:
 
 
 def array_from_image(msg, expected_shape=None) -> tuple[np.ndarray, str]:
-    """sensor_msgs/Image (mono16 or 32FC1) -> (array (rows, cols), encoding), checked.
+    """sensor_msgs/Image -> (array (rows, cols), encoding), checked. The one decoder of the live
+    detector node and the offline replay.
+
+    Integer encodings (``mono16``, ``16UC1``: uint16; ``mono8``, ``8UC1``: uint8) are raw counts
+    (INTERFACES.md's mono16 semantics, the bit depth from the encoding); ``32FC1`` is I/I0.
 
     Raises MessageError naming the problem: unsupported encoding, size or step
     inconsistent with the data, size different from ct_instrument.yaml.
@@ -27,7 +32,8 @@ def array_from_image(msg, expected_shape=None) -> tuple[np.ndarray, str]:
     if enc not in SUPPORTED_ENCODINGS:
         raise MessageError(f"unsupported image encoding {enc!r} (expected one of {SUPPORTED_ENCODINGS})")
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    bpp = 2 if enc == "mono16" else 4
+    code = _DTYPE[enc]
+    bpp = int(code[1])
     if h <= 0 or w <= 0:
         raise MessageError(f"empty image {w}x{h}")
     if step < w * bpp:
@@ -38,7 +44,7 @@ def array_from_image(msg, expected_shape=None) -> tuple[np.ndarray, str]:
     if expected_shape is not None and (h, w) != tuple(expected_shape):
         raise MessageError(f"image is {w}x{h} px but ct_instrument.yaml says {expected_shape[1]}x{expected_shape[0]}")
     big = bool(msg.is_bigendian)
-    dtype = np.dtype(">u2" if big else "<u2") if enc == "mono16" else np.dtype(">f4" if big else "<f4")
+    dtype = np.dtype((">" if big else "<") + code)
     arr = np.frombuffer(data, dtype=np.uint8).reshape(h, step)[:, : w * bpp]
     arr = np.ascontiguousarray(arr).view(dtype).reshape(h, w)
     return arr.astype(dtype.newbyteorder("=")), enc

@@ -38,6 +38,13 @@ class CtInstrument:
         Optional ``temperature`` [K]: the reference object's temperature during
         the scan, for its thermal expansion (with the object's expansion
         coefficient and calibration temperature).
+    flat_field_image : ndarray (rows, cols) or None
+        Optional ``detector.flat_field_image``: file name (relative to the YAML file;
+        ``.npy``, or an image OpenCV reads unchanged, e.g. 16-bit PNG/TIFF) of the
+        open-beam counts per pixel (gain map). Used instead of ``flat_field_counts``.
+    dark : float, ndarray (rows, cols) or None
+        Optional ``detector.dark_counts`` (offset level, counts) or
+        ``detector.dark_image`` (file, as above): subtracted from frames and flat field.
     """
 
     sdd_reported_m: float
@@ -45,6 +52,14 @@ class CtInstrument:
     flat_field_counts: float
     index_repeatability_rad: float | None = None
     temperature_K: float | None = None
+    flat_field_image: np.ndarray | None = None
+    dark: float | np.ndarray | None = None
+
+    def flat_field(self):
+        """What the detector divides by: the flat-field image if given, else the scalar (None if 0)."""
+        if self.flat_field_image is not None:
+            return self.flat_field_image
+        return float(self.flat_field_counts) if self.flat_field_counts else None
 
     def to_yaml_dict(self) -> dict:
         d = {"units": "SI", "source_to_detector": float(self.sdd_reported_m),
@@ -118,7 +133,40 @@ def load_instrument(path) -> CtInstrument:
         if rep > 0.01:
             raise CtFileError(f"{path}: rotary_index_repeatability {rep} rad is implausible (radians expected)")
     temp = _positive(path, data, "temperature") if data.get("temperature") is not None else None
-    return CtInstrument(sdd, DetectorSpec(int(cols), int(rows), pitch), flat, rep, temp)
+    shape = (int(rows), int(cols))
+    flat_img = _image_file(path, det, "flat_field_image", shape) if det.get("flat_field_image") else None
+    if flat_img is not None and not np.all(flat_img > 0):
+        raise CtFileError(f"{path}: detector.flat_field_image must be > 0 everywhere")
+    dark = None
+    if det.get("dark_image"):
+        dark = _image_file(path, det, "dark_image", shape)
+    elif det.get("dark_counts") is not None:
+        dark = _non_negative(path, det, "dark_counts", "detector.")
+    return CtInstrument(sdd, DetectorSpec(int(cols), int(rows), pitch), flat, rep, temp, flat_img, dark)
+
+
+def _image_file(path, det, key, shape) -> np.ndarray:
+    """An optional per-pixel calibration image named in the instrument file (relative to it)."""
+    f = pathlib.Path(str(det[key]))
+    if not f.is_absolute():
+        f = pathlib.Path(path).resolve().parent / f
+    if not f.is_file():
+        raise CtFileError(f"{path}: detector.{key} file {f} not found")
+    try:
+        if f.suffix == ".npy":
+            a = np.load(f, allow_pickle=False)
+        else:
+            import cv2  # noqa: PLC0415
+            a = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+            if a is None:
+                raise ValueError("unreadable image")
+    except Exception as exc:  # noqa: BLE001 - any reader error is a bad file
+        raise CtFileError(f"{path}: detector.{key} {f}: cannot read ({exc})") from None
+    a = np.asarray(a, dtype=np.float32)
+    if a.shape != shape or not np.all(np.isfinite(a)) or np.any(a < 0):
+        raise CtFileError(f"{path}: detector.{key} must be a finite, non-negative {shape[0]}x{shape[1]} "
+                          f"(rows x cols) image, got shape {a.shape}")
+    return a
 
 
 def load_reference_object(path) -> ReferenceObject:

@@ -57,8 +57,8 @@ class CtSphereDetector(Node):
         self.p = p = declare_parameters(self, PARAMS)
         self.instrument, self.ref = load_ct_files(p, self.get_logger())
         self.proc = FrameProcessor(self.ref, self.instrument.detector, self.instrument.sdd_reported_m,
-                                   self.instrument.flat_field_counts, init_frames=int(p["init_frames"]),
-                                   srd_tolerance_m=float(p["position_tolerance_m"]))
+                                   self.instrument.flat_field(), init_frames=int(p["init_frames"]),
+                                   srd_tolerance_m=float(p["position_tolerance_m"]), dark=self.instrument.dark)
         self.pairer = StampPairer(int(p["pair_max_pending"]), int(p["pair_max_bytes"]), float(p["pair_timeout_s"]))
         self.bad_input = BadInputCounter(self.get_logger())
         self.counts = {"frames": 0, "bad_frames": 0, "bad_stage": 0, "unpaired": 0, "published": 0,
