@@ -64,3 +64,26 @@ def test_calibration_service_names_unsettled_stage_and_keeps_file(start_node, ro
     assert ros_node.spin_until(lambda: msgs, timeout=10)
     assert msgs[-1].status.code == SolveStatus.FAILED
     assert out.read_text() == "good: calibration\n"
+
+
+def test_namespace_moves_the_stage_and_its_command(start_node, ros_node):
+    """Relative names: under __ns:=/cell_b the stage listens and publishes in /cell_b only."""
+    from rclpy.qos import qos_profile_sensor_data
+    from sensor_msgs.msg import JointState
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    node = start_node("picms_nodes", "picms_stage_sim", "--ros-args", "-r", "__ns:=/cell_b",
+                      "-p", "resolution_m:=6e-6")
+    in_ns, in_root = [], []
+    ros_node.create_subscription(JointState, "/cell_b/picms/stage/joint_states", in_ns.append, qos_profile_sensor_data)
+    ros_node.create_subscription(JointState, "/picms/stage/joint_states", in_root.append, qos_profile_sensor_data)
+    pub = ros_node.create_publisher(JointTrajectory, "/cell_b/picms/stage/command", 10)
+    assert ros_node.spin_until(lambda: in_ns and pub.get_subscription_count() > 0, timeout=30), node.log()
+    m = JointTrajectory()
+    m.joint_names = ["x", "y", "z"]
+    m.points = [JointTrajectoryPoint(positions=[0.0012, 0.0, 0.0])]
+    pub.publish(m)
+    ros_node.spin_until(lambda: False, timeout=3.5)
+    x = [s.position[s.name.index("x")] for s in in_ns[-5:]]
+    assert np.allclose(x, 0.0012, atol=2e-7), x             # 200 steps of 6 um, settled
+    assert not in_root                                     # nothing leaks into the root namespace

@@ -3,14 +3,16 @@ from __future__ import annotations
 
 from ..core.cell import cell_from_seed
 
-IMAGE_TOPIC = "/picms/{}/image_raw"
-INFO_TOPIC = "/picms/{}/camera_info"
-JOINTS_TOPIC = "/picms/stage/joint_states"
-COMMAND_TOPIC = "/picms/stage/command"
-SMR_TOPIC = "/picms/tracker/smr/{}"
-POSE_TOPIC = "/picms/tracker/probe_pose"
-CALIBRATION_TOPIC = "/picms/calibration"
-SERVICE = "/picms/run_calibration"
+# Relative names (INTERFACES.md's /picms/... in the root namespace): `--ros-args -r __ns:=/cell_b`
+# moves the whole cell, as for the CT cell.
+IMAGE_TOPIC = "picms/{}/image_raw"
+INFO_TOPIC = "picms/{}/camera_info"
+JOINTS_TOPIC = "picms/stage/joint_states"
+COMMAND_TOPIC = "picms/stage/command"
+SMR_TOPIC = "picms/tracker/smr/{}"
+POSE_TOPIC = "picms/tracker/probe_pose"
+CALIBRATION_TOPIC = "picms/calibration"
+SERVICE = "picms/run_calibration"
 
 # every simulator node builds the same cell from these (same seed -> same truth in each process)
 CELL_PARAMS = {

@@ -33,7 +33,7 @@ from ..core.pipeline import calibrate_detections
 from ..io.calibration_msg import calibration_msg, failure_msg
 from ..io.convert import MessageError, image_array, intrinsics_from_camera_info, joint_positions, point, stamp_ns
 from ..io.files import read_cell, write_calibration
-from .common import CALIBRATION_TOPIC, COMMAND_TOPIC, IMAGE_TOPIC, INFO_TOPIC, JOINTS_TOPIC, SERVICE
+from .common import CALIBRATION_TOPIC, COMMAND_TOPIC, IMAGE_TOPIC, INFO_TOPIC, JOINTS_TOPIC, SERVICE, SMR_TOPIC
 
 PARAMS = {
     "cell_file": ("", "picms_cell.yaml; empty = the package's config/picms_cell.yaml [path]"),
@@ -80,7 +80,7 @@ class PicmsCalibrationNode(Node):
                                  callback_group=sensors)
         tr = self.cell["tracker"]
         for name in list(tr["constellation"]) + [tr["probe_smr"]]:
-            self.create_subscription(PointStamped, f"/picms/tracker/smr/{name}",
+            self.create_subscription(PointStamped, SMR_TOPIC.format(name),
                                      lambda m, n=name: self.on_smr(n, m), qos_profile_sensor_data,
                                      callback_group=sensors)
         img_qos = QoSProfile(depth=4, reliability=ReliabilityPolicy.RELIABLE) if p["image_reliable"] \
