@@ -14,8 +14,9 @@ A thin wire ending in a tip (< 50 um) can be added (`Wire`), drawn the same way.
 A planar part (`scenes.PlanarPart`: chrome-on-glass targets in bright field, a flange face in
 dark field) is drawn by `_part_signal`: every pixel near an edge is undistorted with the TRUE
 lens, its ray intersected with the part plane, and the signed distance to the edges (part
-metres) turned into pixels by the local plane-to-pixel Jacobian (box-filtered edge, whose 50 %
-level is the true edge). Defocus varies over a tilted or oblique plane: the blur sd is
+metres) turned into pixels by the local plane-to-pixel Jacobian (area-filtered edge, whose 50 %
+level is the true edge; exact pixel-area coverage of the local straight edge, so that edges at
+any angle are unbiased). Defocus varies over a tilted or oblique plane: the blur sd is
 computed per 16 px tile from its depth and applied as a spatially varying Gaussian
 (interpolation between blurs at geometrically spaced sd levels).
 """
@@ -250,11 +251,26 @@ def _ray_plane(n, o_c, A_c):
     return x, y, rng_m, t
 
 
-def _signal(part: PlanarPart, d_px, w_px):
-    """Box-filtered coverage of the signal region (chrome, or the material's edge band)."""
-    cov = np.clip(0.5 - d_px, 0.0, 1.0)
+def _area_coverage(d_px, a, b):
+    """Exact area of a unit pixel on the inside (d < 0) of a straight edge at signed distance
+    d_px from its centre, edge normal (a, b) = |components| (unit): the CDF of the sum of two
+    uniform variables of widths a and b (the pixel square projected on the normal)."""
+    a, b = np.maximum(a, b), np.maximum(np.minimum(a, b), 1e-9)
+    t = -d_px
+    h = 0.5 * (a + b)
+    lo = np.clip(t + h, 0.0, b)                    # quadratic start
+    hi = np.clip(h - t, 0.0, b)                    # quadratic end
+    mid = np.clip(t, -0.5 * (a - b), 0.5 * (a - b))
+    cov = np.where(t < -0.5 * (a - b), lo * lo / (2 * a * b),
+                   np.where(t > 0.5 * (a - b), 1.0 - hi * hi / (2 * a * b), (mid + 0.5 * a) / a))
+    return cov
+
+
+def _signal(part: PlanarPart, d_px, w_px, a=1.0, b=0.0):
+    """Exact pixel-area coverage of the signal region (chrome, or the material's edge band)."""
+    cov = _area_coverage(d_px, a, b)
     if part.lighting == "dark_field":
-        cov = cov - np.clip(0.5 - d_px - w_px, 0.0, 1.0)
+        cov = cov - _area_coverage(d_px + w_px, a, b)
     return cov
 
 
@@ -292,9 +308,13 @@ def _part_signal(intr: Intrinsics, pose: CameraPose, part: PlanarPart, physics: 
         gu = part.sdf(x + ju[..., 0] / 2, y + ju[..., 1] / 2) - part.sdf(x - ju[..., 0] / 2, y - ju[..., 1] / 2)
         gv = part.sdf(x + jv[..., 0] / 2, y + jv[..., 1] / 2) - part.sdf(x - jv[..., 0] / 2, y - jv[..., 1] / 2)
         g = np.maximum(np.hypot(gu, gv), 1e-12)       # part m per px along the distance gradient
-        return d / g, part.band_m / g
+        return d / g, part.band_m / g, np.abs(gu) / g, np.abs(gv) / g
 
-    dc, wc = dist_px(xc, yc, Ju, Jv)
+    # tile classification: the sdf's gradient has kinks (between dots, along diagonals), so
+    # bound the pixel distance with the Jacobian's singular values instead of differencing
+    sv = np.linalg.svd(np.stack([Ju, Jv], axis=2), compute_uv=False)     # (N, 2), m per px
+    dm = part.sdf(xc, yc)
+    dc, wc = dm / sv[:, 0], part.band_m / sv[:, 1]
     sig = _signal(part, dc, wc).reshape(ty, tx).astype(np.float32)
     lim = _TILE * 0.75 + 2
     near = (np.abs(dc) < lim) | ((part.lighting == "dark_field") & (dc > -wc - lim) & (dc < lim))
@@ -308,8 +328,8 @@ def _part_signal(intr: Intrinsics, pose: CameraPose, part: PlanarPart, physics: 
         nn = intr.undistort(np.column_stack([px.ravel(), py.ravel()]))
         x, y = _ray_plane(nn, o_c, A_c)[:2]
         rep = _TILE * _TILE
-        d, wpx = dist_px(x, y, np.repeat(Ju[edge], rep, 0), np.repeat(Jv[edge], rep, 0))
-        full[(py.ravel() - y0).astype(int), (px.ravel() - x0).astype(int)] = _signal(part, d, wpx)
+        d, wpx, ga, gb = dist_px(x, y, np.repeat(Ju[edge], rep, 0), np.repeat(Jv[edge], rep, 0))
+        full[(py.ravel() - y0).astype(int), (px.ravel() - x0).astype(int)] = _signal(part, d, wpx, ga, gb)
     full = full[:h, :w]
     # defocus by depth, per tile, as a spatially varying Gaussian
     blur_t = np.hypot(physics.psf_sigma_px, [defocus_sigma_px(physics, r, focus) for r in rc]).reshape(ty, tx)
