@@ -64,3 +64,20 @@ def test_calibration_service_names_unsettled_stage_and_keeps_file(start_node, ro
     assert ros_node.spin_until(lambda: msgs, timeout=10)
     assert msgs[-1].status.code == SolveStatus.FAILED
     assert out.read_text() == "good: calibration\n"
+
+
+def test_camera_sim_scene_parameter_renders_the_flange(start_node, ros_node):
+    from sensor_msgs.msg import Image
+
+    from ct_calib_nodes.nodes.runner import QOS_RELIABLE_STREAM
+
+    start_node("picms_nodes", "picms_stage_sim")
+    cam = start_node("picms_nodes", "picms_camera_sim", "--ros-args", "-p", "rate_hz:=1.0", "-p", "scene:=flange",
+                     "-p", "cameras:=[camera_2]", "-p", "part_rotation_rad:=0.3")
+    imgs = []
+    ros_node.create_subscription(Image, "/picms/camera_2/image_raw", imgs.append, QOS_RELIABLE_STREAM)
+    assert ros_node.spin_until(lambda: imgs, timeout=60), cam.log()
+    a = np.frombuffer(bytes(imgs[0].data), np.uint8).reshape(imgs[0].height, imgs[0].width)
+    # dark field: a dark face with bright edge bands (the SMR scene is a bright back-light)
+    assert np.median(a) < 25 and np.percentile(a, 99.9) > 60
+    assert "scene flange" in cam.log()
