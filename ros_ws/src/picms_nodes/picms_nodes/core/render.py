@@ -304,6 +304,7 @@ def _part_signal(intr: Intrinsics, pose: CameraPose, part: PlanarPart, physics: 
     Jv = np.column_stack([xd - xu, yd - yu])          # part m per pixel row
 
     def dist_px(x, y, ju, jv):
+        # central differences (forward ones bias curved edges by the direction of the step)
         d = part.sdf(x, y)
         gu = part.sdf(x + ju[..., 0] / 2, y + ju[..., 1] / 2) - part.sdf(x - ju[..., 0] / 2, y - ju[..., 1] / 2)
         gv = part.sdf(x + jv[..., 0] / 2, y + jv[..., 1] / 2) - part.sdf(x - jv[..., 0] / 2, y - jv[..., 1] / 2)
@@ -336,7 +337,7 @@ def _part_signal(intr: Intrinsics, pose: CameraPose, part: PlanarPart, physics: 
     smin, smax = float(blur_t.min()), float(blur_t.max())
     if smax / smin < 1.03:
         return x0, y0, cv2.GaussianBlur(full, (0, 0), 0.5 * (smin + smax), borderType=cv2.BORDER_REPLICATE)
-    n_lev = int(np.ceil(np.log(smax / smin) / np.log(1.15))) + 1
+    n_lev = int(np.ceil(np.log(smax / smin) / np.log(1.25))) + 1
     levels = smin * (smax / smin) ** np.linspace(0, 1, n_lev)
     smap = cv2.resize(blur_t.astype(np.float32), (tx * _TILE, ty * _TILE), interpolation=cv2.INTER_LINEAR)[:h, :w]
     pos = np.interp(smap, levels, np.arange(n_lev)).astype(np.float32)
@@ -349,30 +350,42 @@ def _part_signal(intr: Intrinsics, pose: CameraPose, part: PlanarPart, physics: 
 
 
 def _render_with_part(pose, intr, physics, rng, part: PlanarPart, focus, cover):
-    """Frame with a planar part (and any opaque objects in `cover` in front of it)."""
-    vig = _vignette(intr, physics.vignetting)
+    """Frame with a planar part (and any opaque objects in `cover` in front of it). The cached
+    background (back-light, or the dark face) and its noise cover the frame; the box holding
+    the part's edges and the objects is recomputed with its own levels and noise."""
+    from dataclasses import replace
     if part.lighting == "bright_field":
-        clean = vig * np.float32(physics.bright_level)
         lo, hi = physics.dark_level, physics.bright_level
+        clean, clean_half, sd = _base(intr, physics)
     else:
-        clean = vig * np.float32(part.face_level)
         lo, hi = part.face_level, part.band_level
-    ps = _part_signal(intr, pose, part, physics, focus)
-    if ps is not None:
-        x0, y0, sig = ps
-        h, w = sig.shape
-        if part.lighting == "bright_field":
-            sig = 1.0 - sig                               # transmitted: chrome blocks
-        clean[y0:y0 + h, x0:x0 + w] = vig[y0:y0 + h, x0:x0 + w] * (np.float32(lo) + np.float32(hi - lo) * sig)
-    for x0, y0, cov, blur in cover:
-        h, w = cov.shape
-        cb = cv2.GaussianBlur(cov, (0, 0), blur, borderType=cv2.BORDER_REPLICATE)
-        sub = clean[y0:y0 + h, x0:x0 + w]
-        sub += (np.float32(physics.dark_level) * vig[y0:y0 + h, x0:x0 + w] - sub) * cb
-    sd = np.sqrt(clean / np.float32(physics.full_well_dn) + np.float32(physics.read_noise_dn ** 2))
+        clean, clean_half, sd = _base(intr, replace(physics, bright_level=part.face_level))
     img = rng.standard_normal(clean.shape, dtype=np.float32)
     img *= sd
-    img += clean
-    img += np.float32(0.5)
+    img += clean_half
+    boxes = []
+    ps = _part_signal(intr, pose, part, physics, focus)
+    if ps is not None:
+        boxes.append((ps[0], ps[1], ps[0] + ps[2].shape[1], ps[1] + ps[2].shape[0]))
+    boxes += [(x0, y0, x0 + cov.shape[1], y0 + cov.shape[0]) for x0, y0, cov, _ in cover]
+    if boxes:
+        bx0, by0 = min(b[0] for b in boxes), min(b[1] for b in boxes)
+        bx1, by1 = max(b[2] for b in boxes), max(b[3] for b in boxes)
+        vig = _vignette(intr, physics.vignetting)[by0:by1, bx0:bx1]
+        box = clean[by0:by1, bx0:bx1].copy()
+        if ps is not None:
+            x0, y0, sig = ps
+            h, w = sig.shape
+            if part.lighting == "bright_field":
+                sig = 1.0 - sig                               # transmitted: chrome blocks
+            box[y0 - by0:y0 - by0 + h, x0 - bx0:x0 - bx0 + w] = (
+                vig[y0 - by0:y0 - by0 + h, x0 - bx0:x0 - bx0 + w] * (np.float32(lo) + np.float32(hi - lo) * sig))
+        for x0, y0, cov, blur in cover:
+            h, w = cov.shape
+            cb = cv2.GaussianBlur(cov, (0, 0), blur, borderType=cv2.BORDER_REPLICATE)
+            sub = box[y0 - by0:y0 - by0 + h, x0 - bx0:x0 - bx0 + w]
+            sub += (np.float32(physics.dark_level) * vig[y0 - by0:y0 - by0 + h, x0 - bx0:x0 - bx0 + w] - sub) * cb
+        bsd = np.sqrt(box / np.float32(physics.full_well_dn) + np.float32(physics.read_noise_dn ** 2))
+        img[by0:by1, bx0:bx1] = box + 0.5 + bsd * rng.standard_normal(box.shape, dtype=np.float32)
     np.clip(img, 0, 255.49, out=img)
     return img.astype(np.uint8)
