@@ -108,8 +108,12 @@ def undistort_normalised(D, xd, yd, iterations: int = 20):
         rad = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
         dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
         dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        x = (xd - dx) / rad
-        y = (yd - dy) / rad
+        xn = (xd - dx) / rad
+        yn = (yd - dy) / rad
+        step = max(float(np.max(np.abs(xn - x), initial=0.0)), float(np.max(np.abs(yn - y), initial=0.0)))
+        x, y = xn, yn
+        if step < 1e-15:        # converged (normalised units: ~1e-11 px)
+            break
     return x, y
 
 

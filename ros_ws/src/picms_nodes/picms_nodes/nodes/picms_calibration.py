@@ -48,6 +48,8 @@ PARAMS = {
     "image_reliable": (True, "subscribe images reliably (5 MP frames over best-effort UDP are mostly lost); "
                              "false to match a best-effort camera driver [-]"),
     "info_timeout_s": (20.0, "wait this long for joint_states and every CameraInfo before giving up [s]"),
+    "command_subscribers": (1, "move the stage only once this many nodes subscribe to its command topic "
+                               "(the stage; with a recorder that must see every command: 2) [count]"),
     "auto_start": (False, "run the calibration once at start-up [-]"),
     "exit_when_done": (False, "end the process after an auto_start run [-]"),
 }
@@ -184,6 +186,12 @@ class PicmsCalibrationNode(Node):
             t_wait = time.monotonic() + float(self.p["info_timeout_s"])
             while time.monotonic() < t_wait and (not self.js_t or any(c not in self.info for c in cams)):
                 time.sleep(0.1)
+            need = int(self.p["command_subscribers"])
+            while time.monotonic() < t_wait and self.cmd.get_subscription_count() < need:
+                time.sleep(0.1)
+            if self.cmd.get_subscription_count() < need:
+                raise CalibrationError(f"{self.cmd.get_subscription_count()} subscriber(s) of the stage command topic, "
+                                       f"{need} expected (command_subscribers) within {self.p['info_timeout_s']} s")
             missing = [c for c in cams if c not in self.info]
             if not self.js_t:
                 raise CalibrationError("no /picms/stage/joint_states: is the stage running?")

@@ -3,9 +3,12 @@
 One node serves the cameras in `cameras` (default all three; run one instance per camera with
 cameras:=[camera_2] if preferred). The cameras ride on the stage: each frame is rendered at
 the latest /picms/stage/joint_states reading and carries that reading's stamp (INTERFACES:
-an image and its stage reading have the identical stamp). The scene is the back-lit SMR* in
-its nest at X* (scene_smr:=false removes it). CameraInfo carries K and D (plumb_bob), or
-D = 0 when the hidden_distortion switch is on.
+an image and its stage reading have the identical stamp). The scene (`scene`) is the back-lit
+SMR* in its nest at X* (default, `smr`; scene_smr:=false removes it), `empty`, `wire` (a 40 um
+wire whose tip sits at X*), `chrome_targets` (bright field) or `flange` (dark field), the part
+placed by `part_position` (m, stage frame at encoder 0), `part_tilt_rad` (rotation vector
+[tx, ty] of the plane) and `part_rotation_rad` (in-plane). CameraInfo carries K and D
+(plumb_bob), or D = 0 when the hidden_distortion switch is on.
 """
 from __future__ import annotations
 
@@ -16,7 +19,8 @@ from sensor_msgs.msg import CameraInfo, Image, JointState
 
 from ct_calib_nodes.nodes.runner import QOS_LATCHED, QOS_RELIABLE_STREAM, declare_parameters, run_node
 
-from ..core.render import render_frame
+from ..core.render import Wire, render_frame
+from ..core.scenes import make_part
 from ..io.convert import MessageError, joint_positions
 from .common import CELL_PARAMS, IMAGE_TOPIC, INFO_TOPIC, JOINTS_TOPIC, truth_from_params
 
@@ -26,6 +30,10 @@ PARAMS = {
     "rate_hz": (1.0, "frame rate per camera [Hz]"),
     "scene_smr": (True, "the SMR* sits in its nest at X* (false: empty back-light) [-]"),
     "noise_seed": (1, "seed of the image noise [-]"),
+    "scene": ("smr", "what is in view: smr | empty | wire | chrome_targets | flange [-]"),
+    "part_position": ([0.0, 0.0, 0.0], "part origin in the stage frame (encoder 0) [m]"),
+    "part_tilt_rad": ([0.0, 0.0], "tilt of the part plane, rotation vector [tx, ty] [rad]"),
+    "part_rotation_rad": (0.0, "in-plane rotation of the part about its normal [rad]"),
 }
 
 
@@ -54,12 +62,19 @@ class PicmsCameraSim(Node):
                 raise ValueError(f"unknown camera {c!r}; the cell has {names}")
             self.index[c] = names.index(c)
         self.rng = np.random.default_rng(int(p["noise_seed"]))
+        scene = str(p["scene"])
+        if len(p["part_position"]) != 3 or len(p["part_tilt_rad"]) != 2:
+            raise ValueError("part_position needs 3 values (m), part_tilt_rad 2 (rad)")
+        self.part = make_part(scene, [float(v) for v in p["part_position"]], [float(v) for v in p["part_tilt_rad"]],
+                              float(p["part_rotation_rad"]))   # ValueError names an unknown scene
+        self.sphere = self.truth.smr_star_stage if (scene == "smr" and p["scene_smr"]) else None
+        self.wire = Wire(self.truth.smr_star_stage, np.array([0.3, 0.2, 1.0]), radius_m=20e-6) if scene == "wire" else None
         self.pubs = {c: self.create_publisher(Image, IMAGE_TOPIC.format(c), QOS_RELIABLE_STREAM) for c in self.index}
         self.info_pubs = {c: self.create_publisher(CameraInfo, INFO_TOPIC.format(c), QOS_LATCHED) for c in self.index}
         self.latest = None
         self.create_subscription(JointState, JOINTS_TOPIC, self.on_joints, qos_profile_sensor_data)
         self.create_timer(1.0 / float(p["rate_hz"]), self.tick)
-        self.get_logger().info(f"simulating {list(self.index)} (cell seed {p['cell_seed']})")
+        self.get_logger().info(f"simulating {list(self.index)} (cell seed {p['cell_seed']}, scene {scene})")
 
     def on_joints(self, msg):
         try:
@@ -82,8 +97,8 @@ class PicmsCameraSim(Node):
         for c, j in self.index.items():
             cam = self.truth.cameras[j]
             img = render_frame(self.truth.camera_pose_at(j, q), cam.true_intrinsics, self.truth.physics, self.rng,
-                               sphere_stage=self.truth.smr_star_stage if self.p["scene_smr"] else None,
-                               nest_axis_stage=self.truth.nest_axis_stage)
+                               sphere_stage=self.sphere, nest_axis_stage=self.truth.nest_axis_stage,
+                               wire=self.wire, part=self.part)
             m = Image()
             m.header.stamp = stamp
             m.header.frame_id = f"{c}_optical"

@@ -64,7 +64,7 @@ def main(argv=None) -> int:
         time.sleep(3.0)
         logs["calibration"] = open(out / "calibration.log", "wb")
         cal = subprocess.Popen([_exe("picms_nodes", "picms_calibration"), "--ros-args", "-p", "auto_start:=true",
-                                "-p", "exit_when_done:=true", "-p", f"output_file:={calib}",
+                                "-p", "exit_when_done:=true", "-p", "command_subscribers:=2", "-p", f"output_file:={calib}",
                                 "-p", f"dwell_s:={a.dwell}"], stdout=logs["calibration"], stderr=subprocess.STDOUT,
                                start_new_session=True)
         try:
