@@ -39,20 +39,18 @@ def find_recordings(root) -> list:
 def solve_one(path, instrument_file=None, reference_file=None, namespace=None, loss="linear", init_frames=6) -> dict:
     """One recording -> a plain dict (picklable, JSON-able): status, results with uncertainties, the
     history records, timing. Never raises: a recording that cannot be solved says why."""
-    from ct_calib_nodes.io import ct_files  # noqa: PLC0415
     from ct_calib_nodes.io.ct_history import offline_records  # noqa: PLC0415
     from ct_calib_nodes.io.history import content_hash, plain  # noqa: PLC0415
     from ct_calib_nodes.io.namespaces import find_namespace  # noqa: PLC0415
-    from ct_calib_nodes.offline import _find_file, solve_recording  # noqa: PLC0415
+    from ct_calib_nodes.offline import load_recording_files, solve_recording  # noqa: PLC0415
 
     t0 = time.perf_counter()
     rec = pathlib.Path(path)
     out = {"recording": str(rec), "host": os.uname().nodename, "pid": os.getpid()}
     try:
-        inst_path, _ = _find_file(instrument_file, rec, "ct_instrument.yaml", ct_files.default_instrument_path)
-        ref_path, _ = _find_file(reference_file, rec, "reference_object.yaml", ct_files.default_reference_object_path)
-        instrument = ct_files.load_instrument(inst_path)
-        ref, note = ct_files.reference_at_scan(ct_files.load_reference_object(ref_path), instrument)
+        f = load_recording_files(rec, instrument_file, reference_file)
+        inst_path, ref_path, instrument, ref, note = (f.instrument_path, f.reference_path, f.instrument, f.ref,
+                                                      f.thermal_note)
         ns = find_namespace(rec, namespace)
         res = solve_recording(rec, instrument, ref, init_frames=init_frames, loss=loss, namespace=ns)
         res.notes.append(note)

@@ -124,7 +124,7 @@ def main(argv=None) -> int:
     from ct_calib_nodes.core import ct_discrepancy  # noqa: PLC0415
     from ct_calib_nodes.io import ct_files  # noqa: PLC0415
     from ct_calib_nodes.io.results import write_json_atomic  # noqa: PLC0415
-    from ct_calib_nodes.offline import _find_file, solve_recording  # noqa: PLC0415
+    from ct_calib_nodes.offline import load_recording_files, solve_recording  # noqa: PLC0415
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
@@ -140,11 +140,9 @@ def main(argv=None) -> int:
         print(f"ct_discrepancy: no recording at {rec}", file=sys.stderr)
         return 2
     try:
-        inst_path, how_i = _find_file(args.instrument, rec, "ct_instrument.yaml", ct_files.default_instrument_path)
-        ref_path, how_r = _find_file(args.reference_object, rec, "reference_object.yaml",
-                                     ct_files.default_reference_object_path)
-        instrument = ct_files.load_instrument(inst_path)
-        ref, thermal_note = ct_files.reference_at_scan(ct_files.load_reference_object(ref_path), instrument)
+        f = load_recording_files(rec, args.instrument, args.reference_object)
+        inst_path, how_i, ref_path, how_r = f.instrument_path, f.instrument_how, f.reference_path, f.reference_how
+        instrument, ref, thermal_note = f.instrument, f.ref, f.thermal_note
     except ct_files.CtFileError as exc:
         print(f"ct_discrepancy: {exc}", file=sys.stderr)
         return 2

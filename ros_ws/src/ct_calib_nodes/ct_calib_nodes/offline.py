@@ -472,6 +472,30 @@ def _find_file(given, recording: pathlib.Path, name: str, default):
     return default(), "package default (no file beside the recording)"
 
 
+@dataclass
+class RecordingFiles:
+    """The YAML files a recording is solved with, where each came from, the thermal note."""
+
+    instrument_path: pathlib.Path
+    instrument_how: str
+    reference_path: pathlib.Path
+    reference_how: str
+    instrument: object
+    ref: object
+    thermal_note: str
+
+
+def load_recording_files(recording: pathlib.Path, instrument=None, reference_object=None) -> RecordingFiles:
+    """The instrument and reference-object files of a recording: given, else beside it, else the
+    package defaults; the reference object at the scan temperature. Raises ct_files.CtFileError."""
+    inst_path, how_i = _find_file(instrument, recording, "ct_instrument.yaml", ct_files.default_instrument_path)
+    ref_path, how_r = _find_file(reference_object, recording, "reference_object.yaml",
+                                 ct_files.default_reference_object_path)
+    inst = ct_files.load_instrument(inst_path)
+    ref, note = ct_files.reference_at_scan(ct_files.load_reference_object(ref_path), inst)
+    return RecordingFiles(inst_path, how_i, ref_path, how_r, inst, ref, note)
+
+
 def _store_history(db, res, rec, files, namespace, source="offline"):
     """Every offline solve (usable or not) goes into the calibration history; a history that cannot be
     written is reported, the results are still written."""
@@ -520,11 +544,9 @@ def main(argv=None) -> int:
         print(f"ct_offline_solve: no recording at {rec}", file=sys.stderr)
         return 2
     try:
-        inst_path, how_i = _find_file(args.instrument, rec, "ct_instrument.yaml", ct_files.default_instrument_path)
-        ref_path, how_r = _find_file(args.reference_object, rec, "reference_object.yaml",
-                                     ct_files.default_reference_object_path)
-        instrument = ct_files.load_instrument(inst_path)
-        ref, thermal_note = ct_files.reference_at_scan(ct_files.load_reference_object(ref_path), instrument)
+        f = load_recording_files(rec, args.instrument, args.reference_object)
+        inst_path, how_i, ref_path, how_r = f.instrument_path, f.instrument_how, f.reference_path, f.reference_how
+        instrument, ref, thermal_note = f.instrument, f.ref, f.thermal_note
     except ct_files.CtFileError as exc:
         print(f"ct_offline_solve: {exc}", file=sys.stderr)
         return 2
