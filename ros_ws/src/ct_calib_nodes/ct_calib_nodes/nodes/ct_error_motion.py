@@ -116,11 +116,11 @@ class CtErrorMotion(Node):
 
     def _on_obs(self, msg):
         self.obs_rate.tick()
-        if self._refused(msg):
+        if plant.refused_as_other_campaign(self, msg):
             return
         k = self.intake.add(msg)
         if k is not None:
-            self._accepted(msg)
+            plant.accept_campaign_msg(self.guard, msg)
         if k is not None and k >= 2 and k == len(self.acc.positions) - 1 and self.acc.positions[k].n_frames == 1:
             self._solve_complete(final=False)      # position k-1 just completed
 
@@ -232,25 +232,6 @@ class CtErrorMotion(Node):
             return plant.WARN, (f"{self.intake.bad_messages} bad message(s) skipped, {self.guard.refused} refused "
                                 "as another campaign"), values
         return plant.OK, "running", values
-
-    def _refused(self, msg) -> bool:
-        """Observations of another campaign interleaved with this one: refused, counted, logged."""
-        from ct_calib_nodes.io.convert import stamp_ns  # noqa: PLC0415
-
-        try:
-            why = self.guard.check(stamp_ns(msg.header.stamp), msg.srd_reported_m, msg.rotary_angle_rad)
-        except (TypeError, ValueError):
-            return False           # the intake names what is wrong with the message
-        if why is not None:
-            if self.guard.refused <= 5 or self.guard.refused % 50 == 0:
-                self.get_logger().error(f"refused observations #{self.guard.refused}: {why}")
-            return True
-        return False
-
-    def _accepted(self, msg):
-        from ct_calib_nodes.io.convert import stamp_ns  # noqa: PLC0415
-
-        self.guard.accept(stamp_ns(msg.header.stamp), msg.srd_reported_m, msg.rotary_angle_rad)
 
     def close(self):
         self.history.close()

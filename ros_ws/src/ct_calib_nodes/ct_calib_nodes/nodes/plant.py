@@ -129,6 +129,29 @@ class Diagnostics:
             pass
 
 
+def refused_as_other_campaign(node, msg) -> bool:
+    """Observations of another campaign interleaved with the node's (``node.guard``): refused,
+    counted, logged (the first five, then every 50th)."""
+    from ct_calib_nodes.io.convert import stamp_ns  # noqa: PLC0415
+
+    try:
+        why = node.guard.check(stamp_ns(msg.header.stamp), msg.srd_reported_m, msg.rotary_angle_rad)
+    except (TypeError, ValueError):
+        return False           # the intake names what is wrong with the message
+    if why is not None:
+        if node.guard.refused <= 5 or node.guard.refused % 50 == 0:
+            node.get_logger().error(f"refused observations #{node.guard.refused}: {why}")
+        return True
+    return False
+
+
+def accept_campaign_msg(guard, msg) -> None:
+    """Record an observation message the node took into its campaign."""
+    from ct_calib_nodes.io.convert import stamp_ns  # noqa: PLC0415
+
+    guard.accept(stamp_ns(msg.header.stamp), msg.srd_reported_m, msg.rotary_angle_rad)
+
+
 def _text(v) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
