@@ -64,7 +64,8 @@ class Mutant:
     build: object           # callable(base_bytes) -> bytes
 
 
-def _records(data: bytes):
+def record_offsets_of(data: bytes):
+    """(offset, opcode, length) of every top-level record of MCAP bytes (an intact file)."""
     out, o = [], 8
     while o + 9 <= len(data):
         op, ln = data[o], int.from_bytes(data[o + 1:o + 9], "little")
@@ -204,7 +205,7 @@ def make_mutants(base: bytes, entries, n_target=2000, seed=20261125, mix=None):
     mix = dict(MIX if mix is None else mix)
     rng = np.random.default_rng(seed)
     muts: list[Mutant] = []
-    recs = _records(base)
+    recs = record_offsets_of(base)
     for o, op, _ln in recs:
         muts.append(Mutant("truncate_boundary", f"cut@{o}(op{op})", lambda b, o=o: b[:o]))
     for o, op, ln in recs:

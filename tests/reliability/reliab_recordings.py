@@ -96,12 +96,6 @@ def ct_recording(folder, n_positions=2, n_proj=5, det_px=128, pitch_m=0.0032, n_
 
 def record_offsets(path):
     """(offset, opcode, length) of every top-level record of an MCAP file (an intact one)."""
-    data = pathlib.Path(path).read_bytes()
-    out, o = [], 8
-    while o + 9 <= len(data):
-        op, ln = data[o], int.from_bytes(data[o + 1:o + 9], "little")
-        out.append((o, op, ln))
-        if op == 2:
-            break
-        o += 9 + ln
-    return out
+    from reliab_fuzz import record_offsets_of  # noqa: PLC0415
+
+    return record_offsets_of(pathlib.Path(path).read_bytes())
