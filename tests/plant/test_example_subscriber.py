@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from builtin_interfaces.msg import Time
-from metro_msgs.msg import ErrorMap, SphereObservation, SphereObservationArray
+from metro_msgs.msg import CtGeometry, ErrorMap, SphereObservation, SphereObservationArray
 from ct_calib_nodes.core.geometry import forward_df, static_to_detector_frame
 from ct_calib_nodes.core.scenario import default_campaign
 from ct_calib_nodes.io import ct_files
@@ -48,14 +48,20 @@ def test_example_subscriber_against_live_nodes(start_node, ros_node):
             t += 50_000_000
     maps = []
     ros_node.create_subscription(ErrorMap, "/cell_x/ct/error_map", maps.append, QOS_LATCHED)
-    assert ros_node.spin_until(lambda: any("final: yes" in n for m in maps for n in m.notes), timeout=120), \
+    assert ros_node.spin_until(lambda: any(m.final for m in maps), timeout=120), \
         geo.log()[-2000:] + mot.log()[-2000:]
     r = subprocess.run([sys.executable, str(EXAMPLE), "--timeout", "60", "--ros-args", "-r", "__ns:=/cell_x"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     out = r.stdout
     assert "calibration valid" in out and "z_R" in out and out.count("SRD ") == 3, out
-    assert "final: yes" in out
+    final = [m for m in maps if m.final][-1]
+    assert final.campaign_id.startswith("/cell_x@") and f"campaign {final.campaign_id}, final," in out, out
+    assert all(not m.final for m in maps[:maps.index(final)])      # growing maps (if seen) are not final
+    geos = []
+    ros_node.create_subscription(CtGeometry, "/cell_x/ct/geometry", geos.append, QOS_LATCHED)
+    assert ros_node.spin_until(lambda: geos, timeout=10)
+    assert final.geometry_stamp == geos[-1].header.stamp and geos[-1].campaign_id == final.campaign_id
     # what it printed is the truth within the stated uncertainty (positioning at the last position)
     last = [ln for ln in out.splitlines() if ln.strip().startswith("SRD")][-1]
     pos_um, u_um = float(last.split("positioning")[1].split()[0]), float(last.split("+-")[1].split()[0])

@@ -361,6 +361,13 @@ def _result_dict(res, instrument, ref, recording, files) -> dict:
     return d
 
 
+def offline_campaign_id(namespace, res):
+    """The campaign id of an offline solve, as the live nodes form it: ``<cell>@<first frame stamp ns>``."""
+    from ct_calib_nodes.io.ct_history import campaign_id_of  # noqa: PLC0415
+
+    return campaign_id_of(namespace, res)
+
+
 def _write_result_mcap(path, res, instrument, namespace: str = "/"):
     """The result topics, as the live graph publishes them (in the cell's namespace)."""
     from ct_calib_nodes.io.namespaces import topic as ns_topic  # noqa: PLC0415
@@ -375,6 +382,7 @@ def _write_result_mcap(path, res, instrument, namespace: str = "/"):
         return Time(sec=int(ns) // 1_000_000_000, nanosec=int(ns) % 1_000_000_000)
 
     last = max(fr.stamp_ns for fr in res.frames)
+    campaign_id = offline_campaign_id(namespace, res)
     with Rosbag2McapWriter(path) as w:
         w.add_topic(ns_topic(namespace, "ct/observations"), "metro_msgs/msg/SphereObservationArray")
         for fr in res.frames:
@@ -382,7 +390,8 @@ def _write_result_mcap(path, res, instrument, namespace: str = "/"):
         w.add_topic(ns_topic(namespace, "ct/geometry"), "metro_msgs/msg/CtGeometry", QOS_RELIABLE_LATCHED)
         p0 = res.acc.positions[0]
         w.write(ns_topic(namespace, "ct/geometry"), geometry_msg(res.static, p0.srd_reported_m, instrument.sdd_reported_m,
-                                             instrument.detector, stamp(last), n_rejected=p0.n_rejected), last)
+                                             instrument.detector, stamp(last), n_rejected=p0.n_rejected,
+                                             campaign_id=campaign_id), last)
         for mode, topic in (("multi", ns_topic(namespace, "ct/error_map")),
                             ("single", ns_topic(namespace, "ct/error_map/single"))):
             if mode not in res.maps:
@@ -390,7 +399,8 @@ def _write_result_mcap(path, res, instrument, namespace: str = "/"):
             em, ks = res.maps[mode]["travel"], res.map_positions[mode]
             motions = [estimate_msg(res.motions[mode][k], f"ct_error_motion/{mode}", stamp(last)) for k in ks[1:]]
             w.add_topic(topic, "metro_msgs/msg/ErrorMap", QOS_RELIABLE_LATCHED)
-            w.write(topic, error_map_msg(em, mode, motions, stamp(last)), last)
+            w.write(topic, error_map_msg(em, mode, motions, stamp(last), campaign_id=campaign_id,
+                                         geometry_stamp=stamp(last), final=True), last)
 
 
 def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files, reference_path=None,

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Example plant subscriber: receives the CT cell's calibration (geometry and error map), checks it is
-valid and fresh, prints it, and exits. Plain rclpy; no project code needed, only metro_msgs.
+valid (status SUCCESS, error map final) and fresh, prints it, and exits. Plain rclpy; no project code needed, only metro_msgs.
 
     python plant_subscriber.py [--max-age-days 30] [--timeout 60] [--ros-args -r __ns:=/cell_a]
 
@@ -43,15 +43,18 @@ def print_geometry(g):
     e = g.static_estimate
     n = len(e.values)
     u = [math.sqrt(e.covariance[i * n + i]) if len(e.covariance) == n * n else float("nan") for i in range(n)]
-    print(f"geometry ({e.model}, data end {stamp_s(g.header):.3f} s, status {STATUS[e.status.code]}, "
+    print(f"geometry ({e.model}, campaign {g.campaign_id or '-'}, data end {stamp_s(g.header):.3f} s, "
+          f"status {STATUS[e.status.code]}, "
           f"rms {e.status.rms_residual:.4f} px, {e.status.observations} observations):")
     for name, unit, v, s in zip(e.names, e.units, e.values, u):
         print(f"  {name:6} = {v:+.9f} {unit}  (u = {s:.2e} {unit})")
 
 
 def print_error_map(m):
-    print(f"error map ({m.mode}, definition {m.definition}, {len(m.srd_reported_m)} positions; position 0 is the "
-          f"reference: value and u 0):")
+    print(f"error map ({m.mode}, definition {m.definition}, campaign {m.campaign_id or '-'}, "
+          f"{'final' if m.final else 'NOT FINAL (campaign still running)'}, on the geometry of stamp "
+          f"{m.geometry_stamp.sec + m.geometry_stamp.nanosec * 1e-9:.3f} s, {len(m.srd_reported_m)} positions; "
+          f"position 0 is the reference: value and u 0):")
     for k, srd in enumerate(m.srd_reported_m):
         print(f"  SRD {srd * 1e3:8.3f} mm: positioning {m.positioning_m[k] * 1e6:+8.3f} +- "
               f"{m.u_positioning_m[k] * 1e6:.3f} um, straightness x/y {m.straightness_x_m[k] * 1e6:+7.3f} / "
@@ -90,8 +93,15 @@ def main():
     if "geometry" in got:
         problems.append(usable("geometry", got["geometry"].static_estimate.status, got["geometry"].header, max_age))
     if "error_map" in got:
+        m = got["error_map"]
         problems += [usable(f"error map position {k + 1}", e.status, e.header, max_age)
-                     for k, e in enumerate(got["error_map"].motions)]
+                     for k, e in enumerate(m.motions)]
+        if not m.final:
+            problems.append("error map: NOT FINAL, the campaign is still running (positions to come)")
+        if "geometry" in got and (m.geometry_stamp.sec, m.geometry_stamp.nanosec) != \
+                (got["geometry"].header.stamp.sec, got["geometry"].header.stamp.nanosec):
+            print("note: the error map rests on another geometry than the one received (a newer geometry "
+                  "awaits its error map)")
     problems = [p for p in problems if p]
     for p in problems:
         print(p)

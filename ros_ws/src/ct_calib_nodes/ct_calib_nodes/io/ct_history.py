@@ -118,6 +118,15 @@ def incomplete_positions(frames_per_position) -> str | None:
             + " lack frames (a recorder started late, or frames were lost)")
 
 
+def campaign_id_of(cell, res) -> str | None:
+    """``<cell>@<first frame stamp ns>`` of an offline solve (the id the live nodes give the same campaign:
+    io/campaign_guard.py), None without frames."""
+    from ct_calib_nodes.io.history import cell_name  # noqa: PLC0415
+
+    stamps = [t for p in res.acc.positions for t in p.stamps_ns] if getattr(res, "acc", None) is not None else []
+    return f"{cell_name(cell)}@{min(stamps)}" if stamps else None
+
+
 def offline_records(res, *, recording, files: dict, cell: str, source: str = "offline", campaign_id=None,
                     recording_hash: str | None = None) -> list:
     """History records of an offline solve (offline.OfflineResult): the static geometry and the
@@ -129,7 +138,7 @@ def offline_records(res, *, recording, files: dict, cell: str, source: str = "of
     inputs = [rec_input] + yaml_inputs(files)
     stamps = [t for p in res.acc.positions for t in p.stamps_ns] if res.acc is not None else []
     t0, t1 = (min(stamps), max(stamps)) if stamps else (None, None)
-    campaign_id = campaign_id or (rec_input.sha256[:16] if rec_input.sha256 else None)
+    campaign_id = campaign_id or campaign_id_of(cell, res) or (rec_input.sha256[:16] if rec_input.sha256 else None)
     out = []
     if res.static is not None:
         p0 = res.acc.positions[0]

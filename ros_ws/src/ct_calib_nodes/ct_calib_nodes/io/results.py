@@ -54,13 +54,15 @@ def estimate_msg(res, model: str, stamp, frame_id: str = "ct_detector", n_reject
     return m
 
 
-def geometry_msg(res, srd_reported_m: float, sdd_reported_m: float, detector, stamp, n_rejected=0):
+def geometry_msg(res, srd_reported_m: float, sdd_reported_m: float, detector, stamp, n_rejected=0,
+                 campaign_id: str | None = ""):
     from geometry_msgs.msg import Point, Vector3  # noqa: PLC0415
     from metro_msgs.msg import CtGeometry  # noqa: PLC0415
 
     g = CtGeometry()
     g.header.stamp = stamp
     g.header.frame_id = "ct_detector"
+    g.campaign_id = str(campaign_id or "")
     g.static_estimate = estimate_msg(res, "ct_static/ferrucci2020", stamp, n_rejected=n_rejected)
     g.srd_reported_m = float(srd_reported_m)
     g.sdd_reported_m = float(sdd_reported_m)
@@ -87,14 +89,22 @@ def static_from_geometry_msg(msg, centres_of_m):
     return w, cov, static_to_detector_frame(w, centres_of_m), int(est.status.code)
 
 
-def error_map_msg(em, mode: str, motions_msgs, stamp):
-    """core.error_map.ErrorMap -> metro_msgs/ErrorMap (all fields, covariance row-major)."""
+def error_map_msg(em, mode: str, motions_msgs, stamp, *, campaign_id: str | None = "", geometry_stamp=None,
+                  final: bool = True):
+    """core.error_map.ErrorMap -> metro_msgs/ErrorMap (all fields, covariance row-major).
+
+    ``campaign_id``: the campaign of the observations; ``geometry_stamp`` (builtin_interfaces/Time): the
+    header stamp of the CtGeometry the map rests on; ``final``: the campaign is complete."""
     from geometry_msgs.msg import Vector3  # noqa: PLC0415
     from metro_msgs.msg import ErrorMap  # noqa: PLC0415
 
     m = ErrorMap()
     m.header.stamp = stamp
     m.header.frame_id = "ct_detector"
+    m.campaign_id = str(campaign_id or "")
+    if geometry_stamp is not None:
+        m.geometry_stamp = geometry_stamp
+    m.final = bool(final)
     m.mode = mode
     m.definition = em.definition
     m.notes = [str(n) for n in em.notes]

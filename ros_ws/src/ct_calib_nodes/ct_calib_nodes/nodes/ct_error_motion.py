@@ -174,11 +174,10 @@ class CtErrorMotion(Node):
             em, ks = campaign_error_map(self.acc, self.results[mode], self.static, definition="travel", name=mode,
                                         index_repeatability_rad=self.instrument.index_repeatability_rad)
             motions = [estimate_msg(self.results[mode][k], f"ct_error_motion/{mode}", stamp) for k in ks[1:]]
-            msg = error_map_msg(em, mode, motions, stamp)
-            # which geometry the map rests on, its campaign, and whether it is final (the message has no fields
-            # for these: notes every consumer reads)
-            msg.notes.append(f"geometry: ct/geometry stamp {self.static_stamp_ns} ns; campaign "
-                             f"{self.guard.campaign_id}; positions {len(ks)}; final: {'yes' if final else 'no (growing)'}")
+            # which geometry the map rests on, its campaign, and whether it is final
+            msg = error_map_msg(em, mode, motions, stamp, campaign_id=self.guard.campaign_id,
+                                geometry_stamp=Time(sec=self.static_stamp_ns // 1_000_000_000,
+                                                    nanosec=self.static_stamp_ns % 1_000_000_000), final=final)
             status, text = map_status({k: self.results[mode][k] for k in ks[1:]})
             if mode == "multi":
                 self.last_map_status, self.last_solve_t = (status, text), time.monotonic()

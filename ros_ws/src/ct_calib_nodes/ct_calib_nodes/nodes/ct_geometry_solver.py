@@ -109,7 +109,8 @@ class CtGeometrySolver(Node):
         self.result, self.solved_n_frames = res, p0.n_frames
         # EstimateStamped: the stamp is when the data the estimate rests on ended (the last frame used)
         msg = geometry_msg(res, p0.srd_reported_m, self.instrument.sdd_reported_m, self.instrument.detector,
-                           time_from_ns(max(p0.stamps_ns)), n_rejected=p0.n_rejected)
+                           time_from_ns(max(p0.stamps_ns)), n_rejected=p0.n_rejected,
+                           campaign_id=self.guard.campaign_id)
         self.last_msg = msg
         if res.success or self.valid_msg is None:
             self.pub.publish(msg)
