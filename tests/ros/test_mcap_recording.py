@@ -129,7 +129,33 @@ def test_recorder_node_over_dds(tmp_path, start_node, ros_node):
         img, js = _messages(i)
         pub_i.publish(img)
         pub_j.publish(js)
-    ros_node.spin_until(lambda: False, timeout=1.5)
+    # diagnostics: per topic what was written, checked against the file read back below
+    from diagnostic_msgs.msg import DiagnosticArray
+    diags = []
+    ros_node.create_subscription(DiagnosticArray, "/diagnostics", diags.append, 10)
+
+    def recorder_status():
+        st = [s for d in diags for s in d.status if s.name == "/mcap_recorder"]
+        return st[-1] if st else None
+
+    def written(st):
+        return {kv.key: kv.value for kv in st.values} if st is not None else {}
+    assert ros_node.spin_until(lambda: written(recorder_status()).get("messages /ct/detector/image") == str(n),
+                               timeout=15), (rec.log(), recorder_status())
+    st = recorder_status()
+    v = written(st)
+    assert st.level == b"\x00" and st.hardware_id == "/", st
+    assert v["messages /ct/stage/joint_states"] == str(n) and v["messages /ct/geometry/estimate"] == "1", v
+    assert v["dropped (lost in DDS)"] == "0" and v["dropped (write errors)"] == "0"
     assert rec.stop() == 0, rec.log()
     assert "wrote" in rec.log()
     _check_independent_readers(out, n)
+    from mcap.reader import make_reader
+    size = {}
+    for f in sorted(out.glob("*.mcap")):
+        with open(f, "rb") as fh:
+            r = make_reader(fh)
+            for _schema, ch, msg in r.iter_messages():
+                size[ch.topic] = size.get(ch.topic, 0) + len(msg.data)
+    for t in TOPICS:
+        assert int(v[f"bytes {t}"]) == size[t], (t, v, size)

@@ -29,14 +29,24 @@ flush_period_s : double
     operating system, so a recorder killed (SIGKILL, power cut of the process) leaves a file
     that readers take up to its last complete chunk: at most this much recording is lost
     (plus what DDS still held). 0 = only when a chunk fills (1 MiB).
+
+Diagnostics (``/diagnostics``, once a second, like every node of the cell: nodes/plant.Diagnostics):
+messages and bytes written in total and per topic, the message rate, the age of the last flush
+while messages wait in the chunk in progress, messages dropped (samples DDS reports lost to the
+recorder's subscriptions, and messages that could not be written), topics that cannot be recorded
+(type not installed). WARN when messages were dropped, a topic cannot be recorded, or the
+unflushed data is older than 3 flush periods; ERROR when the file cannot be written.
 """
 
 from __future__ import annotations
+
+import time
 
 import rclpy
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from ct_calib_nodes.io.mcap_io import Rosbag2McapWriter, import_message_type
+from ct_calib_nodes.nodes import plant
 from ct_calib_nodes.nodes.runner import declare_parameters
 
 IGNORED = {"/rosout", "/parameter_events"}
@@ -72,6 +82,14 @@ class McapRecorder(Node):
         self.subs = {}
         self.timer = self.create_timer(float(p["discovery_period_s"]), self._discover)
         self._flushed_count = 0
+        self.flush_period_s = float(p["flush_period_s"])
+        self.written = {}                # topic -> [messages, bytes]
+        self.lost = {}                   # topic -> samples DDS reported lost
+        self.write_errors, self.last_write_error = 0, ""
+        self.unrecordable = []
+        self.rate = plant.RateMeter()
+        self._flush_t = time.monotonic()
+        self.diagnostics = plant.Diagnostics(self, self.diagnose)
         if float(p["flush_period_s"]) > 0:
             self.flush_timer = self.create_timer(float(p["flush_period_s"]), self._flush)
         self._discover()
@@ -98,21 +116,79 @@ class McapRecorder(Node):
             except ValueError as exc:
                 self.get_logger().warning(f"cannot record {topic}: type {type_name} not installed ({exc})")
                 self.subs[topic] = None
+                self.unrecordable.append(f"{topic} [{type_name}]")
                 continue
             self.writer.add_topic(topic, type_name, [_qos_dict(qos)])
-            self.subs[topic] = self.create_subscription(
-                msg_type, topic, lambda data, t=topic: self._on_raw(t, data), qos, raw=True)
+            self.written[topic] = [0, 0]
+            cb = (lambda data, t=topic: self._on_raw(t, data))
+            try:
+                self.subs[topic] = self.create_subscription(msg_type, topic, cb, qos, raw=True,
+                                                            event_callbacks=self._lost_callbacks(topic))
+            except Exception:  # noqa: BLE001 - the middleware does not report lost samples: record without
+                self.subs[topic] = self.create_subscription(msg_type, topic, cb, qos, raw=True)
             self.get_logger().info(f"recording {topic} [{type_name}] "
                                    f"({'reliable' if reliable else 'best effort'}, "
                                    f"{'transient local' if latched else 'volatile'})")
+
+    def _lost_callbacks(self, topic: str):
+        """Count the samples DDS reports lost to this subscription (None when the event is unsupported)."""
+        try:
+            from rclpy.event_handler import SubscriptionEventCallbacks  # noqa: PLC0415
+
+            def lost(info, t=topic):
+                self.lost[t] = self.lost.get(t, 0) + int(info.total_count_change)
+            return SubscriptionEventCallbacks(message_lost=lost)
+        except Exception:  # noqa: BLE001 - older rclpy: no event, the count stays 0
+            return None
 
     def _flush(self):
         if self.writer.message_count != self._flushed_count:     # no empty chunks while idle
             self.writer.flush()
             self._flushed_count = self.writer.message_count
+        self._flush_t = time.monotonic()
 
     def _on_raw(self, topic: str, data: bytes):
-        self.writer.write_raw(topic, data, self.get_clock().now().nanoseconds)
+        try:
+            self.writer.write_raw(topic, data, self.get_clock().now().nanoseconds)
+        except Exception as exc:  # noqa: BLE001 - a disk full / closed file: counted, reported, the node goes on
+            self.write_errors += 1
+            self.last_write_error = f"{topic}: {exc}"
+            if self.write_errors <= 5:
+                self.get_logger().error(f"could not write a message of {topic}: {exc}")
+            return
+        w = self.written[topic]
+        w[0] += 1
+        w[1] += len(data)
+        self.rate.tick()
+
+    def diagnose(self):
+        n = sum(w[0] for w in self.written.values())
+        nbytes = sum(w[1] for w in self.written.values())
+        lost = sum(self.lost.values())
+        pending = self.writer.message_count - self._flushed_count
+        age = time.monotonic() - self._flush_t
+        values = {"messages written": n, "bytes written": nbytes, "message rate [1/s]": self.rate.rate(),
+                  "topics recorded": len(self.written),
+                  "flush age [s]": age if pending else 0.0, "messages not yet flushed": pending,
+                  "dropped (lost in DDS)": lost, "dropped (write errors)": self.write_errors,
+                  "topics not recordable": ", ".join(self.unrecordable) or "none"}
+        for t, (m, b) in sorted(self.written.items()):
+            values[f"messages {t}"] = m
+            values[f"bytes {t}"] = b
+        for t, m in sorted(self.lost.items()):
+            values[f"dropped {t}"] = m
+        if self.write_errors:
+            return plant.ERROR, (f"{self.write_errors} message(s) could not be written: {self.last_write_error}"), values
+        warn = []
+        if lost:
+            warn.append(f"{lost} message(s) lost before reaching the recorder")
+        if self.unrecordable:
+            warn.append(f"{len(self.unrecordable)} topic(s) cannot be recorded (type not installed)")
+        if pending and self.flush_period_s > 0 and age > 3 * self.flush_period_s:
+            warn.append(f"{pending} message(s) not flushed for {age:.0f} s")
+        if warn:
+            return plant.WARN, "; ".join(warn), values
+        return plant.OK, f"recording: {n} messages, {nbytes / 1e6:.1f} MB", values
 
     def close(self):
         path = self.writer.close()
