@@ -159,3 +159,20 @@ def test_recorder_node_over_dds(tmp_path, start_node, ros_node):
                 size[ch.topic] = size.get(ch.topic, 0) + len(msg.data)
     for t in TOPICS:
         assert int(v[f"bytes {t}"]) == size[t], (t, v, size)
+
+
+def test_exact_size_of_messages_with_boolean_fields():
+    """CameraInfo carries a boolean (roi.do_rectify): its exact CDR size is known and round-trips."""
+    from rclpy.serialization import deserialize_message, serialize_message
+    from sensor_msgs.msg import CameraInfo
+
+    from ct_calib_nodes.io.mcap_io import cdr_size, serialize_exact
+
+    m = CameraInfo(width=581, height=682, distortion_model="plumb_bob")
+    m.d = [-0.02, 0.0, 0.0, 0.0, 0.0]
+    m.k = [4091.0, 0.0, 290.5, 0.0, 4091.0, 340.5, 0.0, 0.0, 1.0]
+    m.roi.do_rectify = True
+    data = serialize_exact(m)
+    assert len(data) == cdr_size(m) <= len(serialize_message(m))
+    back = deserialize_message(data, CameraInfo)
+    assert back.roi.do_rectify and list(back.k) == list(m.k) and back.distortion_model == "plumb_bob"

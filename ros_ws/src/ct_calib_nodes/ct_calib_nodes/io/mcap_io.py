@@ -37,7 +37,7 @@ import yaml
 
 SEPARATOR = "=" * 80
 PRIMITIVES = {
-    "bool": 1, "byte": 1, "char": 1, "octet": 1, "uint8": 1, "int8": 1,
+    "bool": 1, "boolean": 1, "byte": 1, "char": 1, "octet": 1, "uint8": 1, "int8": 1,
     "int16": 2, "uint16": 2, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
     "int64": 8, "uint64": 8, "double": 8, "float64": 8,
 }
