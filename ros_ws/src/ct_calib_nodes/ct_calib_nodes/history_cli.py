@@ -9,8 +9,10 @@
 ``compare`` and ``trend`` flag a change beyond its uncertainty: |b - a| > k sqrt(u_a^2 + u_b^2)
 (k = 2 by default; the two solves taken as independent). ``trend`` looks at the valid (SUCCESS)
 solves of one cell in time order: the key geometry parameters (z_R, z_D, x_D, y_D, theta, phi,
-eta) and every error-map component at every position; ``--plot DIR`` writes PNG plots with
-+-k u bands. The database: ``--db``, else ``$METRO_HISTORY_DB``, else
+eta), every error-map component at every position, and for the other kinds (Pixel Probe
+calibrations ``picms_calibration``, ...) every scalar quantity that carries an uncertainty (X* in
+the constellation and tracker frames, x_j* per camera, camera centres, squareness); ``--kind``
+restricts it to one kind; ``--plot DIR`` writes PNG plots with +-k u bands, one per kind. The database: ``--db``, else ``$METRO_HISTORY_DB``, else
 ``~/.local/share/metro_cell/history.sqlite``.
 
 Exit status: 0 done (``trend``: also when changes were flagged; they are printed), 2 bad
@@ -25,11 +27,13 @@ import datetime as dt
 import json
 import math
 import pathlib
+import re
 import sys
 
 from ct_calib_nodes.io.history import History, HistoryError, compare_quantities, default_path, plain
 
 KEY_GEOMETRY = ("z_R", "z_D", "x_D", "y_D", "theta", "phi", "eta")
+CT_KINDS = ("ct_geometry", "ct_error_map")
 MAP_COMPONENTS = ("positioning_m", "straightness_x_m", "straightness_y_m", "pitch_rad", "yaw_rad", "roll_rad")
 DISPLAY = {"m": (1e6, "um"), "rad": (206264.80624709636, "arcsec")}
 
@@ -134,17 +138,25 @@ def cmd_export(h, a):
     return 0
 
 
-def trend_series(h, cell, k: float = 2.0):
+def trend_series(h, cell, k: float = 2.0, kind=None):
     """{(kind, name, position): [(solve id, created_ns, value, u, unit, flagged vs previous)]}"""
     series = {}
-    for name in KEY_GEOMETRY:
-        series[("ct_geometry", name, None)] = h.trend(name, cell=cell, kind="ct_geometry")
-    for rec in h.list(cell=cell, kind="ct_error_map", status="success", limit=1, newest_first=True,
-                      with_details=True):
-        positions = sorted({q.position for q in rec.quantities if q.position})
-        for c in MAP_COMPONENTS:
-            for p in positions:
-                series[("ct_error_map", c, p)] = h.trend(c, cell=cell, kind="ct_error_map", position=p)
+    if kind in (None, "ct_geometry"):
+        for name in KEY_GEOMETRY:
+            series[("ct_geometry", name, None)] = h.trend(name, cell=cell, kind="ct_geometry")
+    if kind in (None, "ct_error_map"):
+        for rec in h.list(cell=cell, kind="ct_error_map", status="success", limit=1, newest_first=True,
+                          with_details=True):
+            positions = sorted({q.position for q in rec.quantities if q.position})
+            for c in MAP_COMPONENTS:
+                for p in positions:
+                    series[("ct_error_map", c, p)] = h.trend(c, cell=cell, kind="ct_error_map", position=p)
+    kinds = [x for x in h.kinds(cell=cell) if x not in CT_KINDS]
+    for other in kinds if kind is None else [kind] if kind not in CT_KINDS else []:
+        for rec in h.list(cell=cell, kind=other, status="success", limit=1, newest_first=True, with_details=True):
+            for q in rec.quantities:       # the scalar quantities with an uncertainty
+                if q.position is None and q.u is not None:
+                    series[(other, q.name, None)] = h.trend(q.name, cell=cell, kind=other)
     out = {}
     for key, rows in series.items():
         pts, prev = [], None
@@ -163,7 +175,7 @@ def trend_series(h, cell, k: float = 2.0):
 
 
 def cmd_trend(h, a):
-    series = trend_series(h, a.cell, a.k)
+    series = trend_series(h, a.cell, a.k, a.kind)
     if not series:
         print(f"no valid solves of cell {a.cell} in {h.path}")
         return 0
@@ -173,13 +185,20 @@ def cmd_trend(h, a):
         n_flag += len(flags)
         label = name + ("" if pos is None else f"[{pos}]")
         last = pts[-1]
-        print(f"{kind:13} {label:22} {len(pts):3} solves, last {_fmt(last[2], last[4])} +- {_fmt(last[3], last[4])}"
+        print(f"{kind:17} {label:24} {len(pts):3} solves, last {_fmt(last[2], last[4])} +- {_fmt(last[3], last[4])}"
               + "".join(f"; CHANGED at solve {p[0]}" for p in flags))
     print(f"{n_flag} change(s) beyond {a.k:g} standard uncertainties between consecutive valid solves")
     if a.plot:
         for f in plot_trends(series, pathlib.Path(a.plot), a.cell, a.k):
             print(f"plot: {f}")
     return 0
+
+
+def _family(name: str) -> str:
+    """x_star_col_camera_1 -> x_star, centre_x_camera_2 -> centre, p_tracker_x -> p_tracker, squareness_xy ->
+    squareness: the panel a quantity of a non-CT kind is drawn in."""
+    base = re.sub(r"_camera_\d+$", "", name)
+    return re.sub(r"_(x|y|z|col|row|xy|xz|yz)$", "", base)
 
 
 def plot_trends(series, out_dir: pathlib.Path, cell: str, k: float = 2.0):
@@ -189,29 +208,39 @@ def plot_trends(series, out_dir: pathlib.Path, cell: str, k: float = 2.0):
 
     out_dir.mkdir(parents=True, exist_ok=True)
     files = []
-    for kind, names in (("ct_geometry", KEY_GEOMETRY), ("ct_error_map", MAP_COMPONENTS)):
+    groups = [("ct_geometry", KEY_GEOMETRY, False), ("ct_error_map", MAP_COMPONENTS, False)]
+    for kind in sorted({key[0] for key in series} - set(CT_KINDS)):
+        # other kinds: one panel per family of quantities (x_star_col_camera_1, ... -> x_star), each
+        # quantity drawn as its change since its first valid solve, so a panel holds several of them
+        groups.append((kind, tuple(dict.fromkeys(_family(key[1]) for key in series if key[0] == kind)), True))
+    for kind, names, as_change in groups:
         keys = [key for key in series if key[0] == kind]
         if not keys:
             continue
         fig, axes = plt.subplots(len(names), 1, figsize=(8, 2.0 * len(names)), sharex=True, squeeze=False)
         for ax, name in zip(axes[:, 0], names):
-            for key in [kk for kk in keys if kk[1] == name]:
+            for key in [kk for kk in keys if (_family(kk[1]) if as_change else kk[1]) == name]:
                 pts = series[key]
                 unit = pts[0][4]
                 scale, shown = DISPLAY.get(unit, (1.0, unit))
                 t = [dt.datetime.fromtimestamp(p[1] / 1e9, dt.timezone.utc) for p in pts]
-                v = [p[2] * scale for p in pts]
+                v0 = pts[0][2] * scale if as_change else 0.0
+                v = [p[2] * scale - v0 for p in pts]
                 u = [(p[3] or 0.0) * scale for p in pts]
-                lab = None if key[2] is None else f"position {key[2]}"
+                lab = key[1] if as_change else (None if key[2] is None else f"position {key[2]}")
                 line, = ax.plot(t, v, "o-", ms=3, label=lab)
                 ax.fill_between(t, [a - k * b for a, b in zip(v, u)], [a + k * b for a, b in zip(v, u)],
                                 color=line.get_color(), alpha=0.2)
                 for p, ti, vi in zip(pts, t, v):
                     if p[5]:
                         ax.plot([ti], [vi], "rx", ms=10, mew=2)
-                ax.set_ylabel(f"{name}\n[{shown}]", fontsize=8)
-            if kind == "ct_error_map" and ax is axes[0, 0]:
-                ax.legend(fontsize=6, ncol=4)
+                ax.set_ylabel(f"{name}{' change' if as_change else ''}\n[{shown}]", fontsize=8)
+            if as_change or (kind == "ct_error_map" and ax is axes[0, 0]):
+                ax.legend(fontsize=6, ncol=3, loc="upper left")
+        times = [p[1] for key in keys for p in series[key]]
+        if max(times) - min(times) < 60e9:      # one solve (or all within a minute): a readable time axis
+            mid = dt.datetime.fromtimestamp(0.5 * (max(times) + min(times)) / 1e9, dt.timezone.utc)
+            axes[0, 0].set_xlim(mid - dt.timedelta(hours=1), mid + dt.timedelta(hours=1))
         axes[0, 0].set_title(f"cell {cell}: {kind} over time (bands +-{k:g} u; x = change beyond {k:g} u)")
         fig.autofmt_xdate()
         fig.tight_layout()
@@ -249,6 +278,7 @@ def main(argv=None) -> int:
     p.add_argument("--full", action="store_true", help="JSON: include each solve's full result")
     p = sub.add_parser("trend", help="key quantities of one cell over time, changes flagged, plots")
     p.add_argument("--cell", default="/")
+    p.add_argument("--kind", help="one kind only (ct_geometry, ct_error_map, picms_calibration, ...)")
     p.add_argument("--k", type=float, default=2.0)
     p.add_argument("--plot", help="directory for trend PNGs")
     a = ap.parse_args(argv)

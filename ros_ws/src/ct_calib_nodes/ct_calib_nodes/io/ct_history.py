@@ -40,13 +40,28 @@ def yaml_inputs(files: dict) -> list:
     return [Input.file(role if role.endswith("_yaml") else role + "_yaml", path) for role, path in files.items() if path]
 
 
+def _type_hash(type_name: str) -> str:
+    try:
+        from ct_calib_nodes.io.mcap_io import type_hash  # noqa: PLC0415
+        return type_hash(type_name)
+    except Exception:  # noqa: BLE001 - no ROS installation: no hash, no check
+        return ""
+
+
 def ros_msg_blob(type_name: str, cdr: bytes) -> dict:
-    return {"type": type_name, "cdr_b64": base64.b64encode(bytes(cdr)).decode("ascii")}
+    """The published message as stored: type, RIHS01 type hash (a later message definition with other
+    fields must not decode these bytes), CDR bytes in base64."""
+    return {"type": type_name, "type_hash": _type_hash(type_name), "cdr_b64": base64.b64encode(bytes(cdr)).decode("ascii")}
 
 
 def ros_msg_bytes(result: dict, type_name: str) -> bytes | None:
+    """The stored CDR bytes of a message of ``type_name``, or None when absent or stored under another
+    definition of the type (type hash differs)."""
     blob = (result or {}).get("ros_msg")
     if not blob or blob.get("type") != type_name:
+        return None
+    stored, now = blob.get("type_hash", ""), _type_hash(type_name)
+    if stored and now and stored != now:
         return None
     return base64.b64decode(blob["cdr_b64"])
 

@@ -424,6 +424,17 @@ class History:
             q += " AND s.status = 'success'"
         return [tuple(r) for r in self._con.execute(q + " ORDER BY s.id", args)]
 
+    def kinds(self, cell=None, status: str | None = "success") -> list:
+        """The kinds of solves stored (of a cell; with a status), sorted."""
+        q, args = "SELECT DISTINCT kind FROM solves WHERE 1 = 1", []
+        if cell is not None:
+            q += " AND cell = ?"
+            args.append(cell_name(cell))
+        if status is not None:
+            q += " AND status = ?"
+            args.append(normalise_status(status))
+        return sorted(r[0] for r in self._con.execute(q, args))
+
     def count(self) -> int:
         return int(self._con.execute("SELECT COUNT(*) FROM solves").fetchone()[0])
 

@@ -21,6 +21,38 @@ IMAGE_RE = re.compile(r"^/picms/(camera_\d+)/image_raw$")
 INFO_RE = re.compile(r"^/picms/(camera_\d+)/camera_info$")
 SMR_PREFIX = "/picms/tracker/smr/"
 JOINTS = "/picms/stage/joint_states"
+JOINTS_REL = "picms/stage/joint_states"
+
+
+def _names(namespace: str = "/"):
+    """(image re, info re, smr prefix, joints topic) of a Pixel Probe cell in a namespace."""
+    from ct_calib_nodes.io.namespaces import normalise  # noqa: PLC0415
+
+    ns = normalise(namespace)
+    pre = "" if ns == "/" else ns
+    return (re.compile("^" + re.escape(pre) + r"/picms/(camera_\d+)/image_raw$"),
+            re.compile("^" + re.escape(pre) + r"/picms/(camera_\d+)/camera_info$"),
+            pre + SMR_PREFIX, pre + JOINTS)
+
+
+def find_namespace(path, namespace=None) -> str:
+    """The namespace of the Pixel Probe cell in a recording: the given one (checked), else the only one
+    whose stage joint_states are present ('/' when none is: the calibration then says what it lacks).
+    ValueError naming the candidates when there are several or the given one is absent."""
+    from ct_calib_nodes.io.namespaces import normalise, recording_topics, topic  # noqa: PLC0415
+
+    topics = recording_topics(path)
+    suffix = "/" + JOINTS_REL
+    found = sorted(t[: -len(suffix)] or "/" for t in topics if t.endswith(suffix))
+    if namespace is not None:
+        ns = normalise(namespace)
+        if topic(ns, JOINTS_REL) not in topics:
+            raise ValueError(f"the recording has no {topic(ns, JOINTS_REL)}; Pixel Probe cells in it: "
+                             f"{found or 'none'}")
+        return ns
+    if len(found) <= 1:
+        return found[0] if found else "/"
+    raise ValueError(f"the recording holds several Pixel Probe cells {found}: choose one with --namespace")
 
 
 @dataclass
@@ -30,8 +62,9 @@ class RecordingReport:
     counts: dict = field(default_factory=dict)
 
 
-def read_recording(path, cell: dict) -> tuple[Recording, RecordingReport]:
+def read_recording(path, cell: dict, namespace: str = "/") -> tuple[Recording, RecordingReport]:
     """Pass 1: everything but the images. Returns the Recording (frames empty) and a report."""
+    _img_re, INFO_RE, SMR_PREFIX, JOINTS = _names(namespace)  # noqa: N806 - the module names, in the namespace
     rep = RecordingReport()
     rec = Recording(cell=cell)
     js_t, js_q, infos = [], [], {}
@@ -59,8 +92,9 @@ def read_recording(path, cell: dict) -> tuple[Recording, RecordingReport]:
     return rec, rep
 
 
-def iter_frames(path, rep: RecordingReport):
+def iter_frames(path, rep: RecordingReport, namespace: str = "/"):
     """Pass 2: (stamp_ns, camera, image) of every readable image; problems go to rep."""
+    IMAGE_RE = _names(namespace)[0]  # noqa: N806
     for m in iter_recording(path, report=ReadReport()):
         mm = IMAGE_RE.match(m.topic)
         if not mm:

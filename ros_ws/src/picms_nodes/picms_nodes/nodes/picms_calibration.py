@@ -24,6 +24,7 @@ from metro_msgs.srv import RunPicmsCalibration
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from ct_calib_nodes.nodes import plant
 from ct_calib_nodes.nodes.runner import QOS_LATCHED, declare_parameters
 
 from ..core.calibrate import CalibrationError, settled_windows
@@ -52,6 +53,7 @@ PARAMS = {
                                "(the stage; with a recorder that must see every command: 2) [count]"),
     "auto_start": (False, "run the calibration once at start-up [-]"),
     "exit_when_done": (False, "end the process after an auto_start run [-]"),
+    **plant.HISTORY_PARAMS,
 }
 
 
@@ -69,7 +71,8 @@ class PicmsCalibrationNode(Node):
     def __init__(self):
         super().__init__("picms_calibration")
         self.p = p = declare_parameters(self, PARAMS)
-        self.cell = read_cell(p["cell_file"] or _default_cell())
+        self.cell_file = p["cell_file"] or _default_cell()
+        self.cell = read_cell(self.cell_file)
         self.lock = threading.Lock()
         self.busy = threading.Lock()
         self.exit_code = 0
@@ -95,6 +98,8 @@ class PicmsCalibrationNode(Node):
         self.cmd = self.create_publisher(JointTrajectory, COMMAND_TOPIC, 10)
         self.pub = self.create_publisher(PicmsCalibration, CALIBRATION_TOPIC, QOS_LATCHED)
         self.create_service(RunPicmsCalibration, SERVICE, self.on_service, callback_group=self.svc_group)
+        from .plant_hooks import PicmsPlant  # history (latest valid re-published now) and diagnostics
+        self.plant = PicmsPlant(self, p["history_db"])
         if p["auto_start"]:
             threading.Thread(target=self._auto, daemon=True).start()
 
@@ -105,6 +110,7 @@ class PicmsCalibrationNode(Node):
         except MessageError as exc:
             self.get_logger().warning(f"skipped joint_states: {exc}")
             return
+        self.plant.joints.tick()
         with self.lock:
             self.js_t.append(stamp_ns(m.header.stamp))
             self.js_q.append(q)
@@ -128,6 +134,7 @@ class PicmsCalibrationNode(Node):
             self.info[cam] = intr
 
     def on_image(self, cam, m):
+        self.plant.images.tick()
         if not self.busy.locked():
             return                              # not calibrating: frames are not needed
         intr = self.info.get(cam)
@@ -218,7 +225,8 @@ class PicmsCalibrationNode(Node):
             if write_file and self.p["output_file"]:
                 path = str(write_calibration(res, self.p["output_file"]))
             msg = calibration_msg(res, self.get_clock().now().to_msg(), path)
-            self.pub.publish(msg)
+            self.plant.publish(msg)
+            self.plant.store(res, msg, None, self.cell_file, rec.joint_stamps_ns)
             self.get_logger().info(f"{res.message}; X* pixels " +
                                    ", ".join(f"{c}: {np.round(v, 3).tolist()}" for c, v in res.pixels.items()) +
                                    (f"; written to {path}" if path else ""))
@@ -226,7 +234,8 @@ class PicmsCalibrationNode(Node):
         except (CalibrationError, ValueError, OSError) as exc:
             self.get_logger().error(f"calibration failed: {exc} (no file written)")
             msg = failure_msg(str(exc), self.get_clock().now().to_msg())
-            self.pub.publish(msg)
+            self.plant.publish(msg)
+            self.plant.store(None, msg, str(exc), self.cell_file, list(self.js_t))
             return False, str(exc), msg
         finally:
             self.busy.release()

@@ -74,6 +74,8 @@ class PicmsCameraSim(Node):
         self.latest = None
         self.create_subscription(JointState, JOINTS_TOPIC, self.on_joints, qos_profile_sensor_data)
         self.create_timer(1.0 / float(p["rate_hz"]), self.tick)
+        from .plant_hooks import SimDiagnostics
+        self.diag = SimDiagnostics(self, "frames", lambda: "waiting for stage joint_states" if self.latest is None else None)
         self.get_logger().info(f"simulating {list(self.index)} (cell seed {p['cell_seed']}, scene {scene})")
 
     def on_joints(self, msg):
@@ -109,6 +111,7 @@ class PicmsCameraSim(Node):
             m.data = img.tobytes()
             self.info_pubs[c].publish(camera_info_msg(cam.info_intrinsics, stamp, f"{c}_optical"))
             self.pubs[c].publish(m)
+            self.diag.sent.tick()
 
 
 def main(args=None):

@@ -40,6 +40,8 @@ class PicmsStageSim(Node):
         self.pub = self.create_publisher(JointState, JOINTS_TOPIC, QOS_RELIABLE_STREAM)
         self.create_subscription(JointTrajectory, COMMAND_TOPIC, self.on_command, 10)
         self.create_timer(1.0 / float(p["rate_hz"]), self.tick)
+        from .plant_hooks import SimDiagnostics
+        self.diag = SimDiagnostics(self, "stage readings")
 
     def _t(self, ns=None):
         return ((self.get_clock().now().nanoseconds if ns is None else ns) - self.t0) * 1e-9
@@ -57,6 +59,7 @@ class PicmsStageSim(Node):
                 raise ValueError(f"target {q.tolist()} m beyond the travel limit {self.p['travel_m']} m")
         except ValueError as exc:
             self.get_logger().warning(f"ignored stage command: {exc}")
+            self.diag.bad += 1
             return
         t_end = self.stage.command(q, self._t())
         self.get_logger().info(f"move to {np.round(q * 1e3, 4).tolist()} mm, profile ends in {t_end - self._t():.2f} s")
@@ -70,6 +73,7 @@ class PicmsStageSim(Node):
         m.name = ["x", "y", "z"]
         m.position = [float(v) for v in q]
         self.pub.publish(m)
+        self.diag.sent.tick()
 
 
 def main(args=None):

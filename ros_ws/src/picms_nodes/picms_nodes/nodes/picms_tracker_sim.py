@@ -49,6 +49,8 @@ class PicmsTrackerSim(Node):
         self.k = 0
         self.create_subscription(JointState, JOINTS_TOPIC, self.on_joints, qos_profile_sensor_data)
         self.create_timer(1.0 / float(p["rate_hz"]), self.tick)
+        from .plant_hooks import SimDiagnostics
+        self.diag = SimDiagnostics(self, "tracker readings", lambda: "waiting for stage joint_states" if self.q is None else None)
 
     def on_joints(self, msg):
         try:
@@ -67,6 +69,7 @@ class PicmsTrackerSim(Node):
         m.header.frame_id = "tracker"
         m.point.x, m.point.y, m.point.z = (float(v) for v in p)
         self.pubs[name].publish(m)
+        self.diag.sent.tick()
         if self.k % int(self.p["pose_every"]) == 0:
             from scipy.spatial.transform import Rotation
             R, pp = probe_pose_reading(self.truth, self.q, self.rng)
