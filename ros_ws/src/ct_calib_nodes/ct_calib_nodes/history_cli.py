@@ -53,9 +53,9 @@ def _when(ns):
 
 def cmd_list(h, a):
     recs = h.list(cell=a.cell, kind=a.kind, status=a.status, limit=a.limit, newest_first=True)
-    print(f"{'id':>5}  {'time (UTC)':19}  {'cell':10} {'kind':14} {'source':8} {'status':17} {'final':5} campaign")
+    print(f"{'id':>5}  {'time (UTC)':19}  {'cell':10} {'kind':17} {'source':8} {'status':17} {'final':5} campaign")
     for r in recs:
-        print(f"{r.id:>5}  {_when(r.created_ns)}  {r.cell:10} {r.kind:14} {r.source:8} {r.status:17} "
+        print(f"{r.id:>5}  {_when(r.created_ns)}  {r.cell:10} {r.kind:17} {r.source:8} {r.status:17} "
               f"{'yes' if r.final else 'no':5} {r.campaign_id or '-'}")
     print(f"{len(recs)} solve(s) in {h.path}")
     return 0
