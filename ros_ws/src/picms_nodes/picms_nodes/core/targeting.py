@@ -214,34 +214,57 @@ def _proj_px(probe: Probe, c: str, X: np.ndarray) -> np.ndarray:
     return probe.intrinsics[c].distort((pc[:2] / pc[2]).reshape(1, 2))[0]
 
 
+def _distortion_jacobian(intr, n) -> np.ndarray:
+    """d(pixel)/d(normalised undistorted coordinate) (2, 2) at n (2,)."""
+    h = 1e-7
+    pts = np.array([n + [h, 0], n - [h, 0], n + [0, h], n - [0, h]])
+    u = intr.distort(pts)
+    return np.column_stack([(u[0] - u[1]) / (2 * h), (u[2] - u[3]) / (2 * h)])
+
+
 def _triangulate_body(probe: Probe, px: dict, cov: dict, refine: bool = True):
-    """(X (3,), cov (3, 3), residuals {c: (2,)}, X_dlt) in the body frame from raw pixels."""
+    """(X (3,), cov (3, 3), residuals {c: (2,)}, X_dlt) in the body frame from raw pixels.
+
+    The pixels are undistorted once; the pixel covariance is carried into normalised
+    coordinates through the local distortion Jacobian, so the refinement (Gauss-Newton on
+    the weighted normalised residuals, analytic Jacobian) needs no further distortion calls.
+    """
     if len(px) < 2:
         raise TargetingError(f"triangulation needs the feature in at least two cameras, got {sorted(px)}")
-    n = {c: probe.intrinsics[c].undistort(px[c].reshape(1, 2))[0] for c in px}
-    w = {c: probe.intrinsics[c].f_px / np.sqrt(np.trace(cov[c]) / 2) for c in px}
+    cams = list(px)
+    n = {c: probe.intrinsics[c].undistort(px[c].reshape(1, 2))[0] for c in cams}
+    Jd = {c: _distortion_jacobian(probe.intrinsics[c], n[c]) for c in cams}
+    Wn = {}
+    for c in cams:
+        Jinv = np.linalg.inv(Jd[c])
+        Wn[c] = np.linalg.inv(Jinv @ cov[c] @ Jinv.T)       # weight of normalised residuals
+    w = {c: np.sqrt(np.trace(Wn[c]) / 2) for c in cams}      # row scaling of the DLT
     X0 = _dlt(probe, n, w)
     X = X0.copy()
-    cams = list(px)
-    Wc = {c: np.linalg.inv(cov[c]) for c in cams}
-    for _ in range(6 if refine else 1):
-        J = np.zeros((3, 3))
+    Rt = {c: probe.R_stage_camera[c].T for c in cams}
+    Cc = {c: probe.p_stage_centre[c] for c in cams}
+    for _ in range(8):
+        H = np.zeros((3, 3))
         g = np.zeros(3)
         for c in cams:
-            r = px[c] - _proj_px(probe, c, X)
-            Jc = np.empty((2, 3))
-            for k in range(3):
-                d = np.zeros(3)
-                d[k] = 1e-7
-                Jc[:, k] = (_proj_px(probe, c, X + d) - _proj_px(probe, c, X - d)) / 2e-7
-            J += Jc.T @ Wc[c] @ Jc
-            g += Jc.T @ Wc[c] @ r
-        step = np.linalg.solve(J, g) if refine else np.zeros(3)
-        X = X + step
-        if np.linalg.norm(step) < 1e-12:
+            pc = Rt[c] @ (X - Cc[c])
+            if pc[2] <= 0:
+                raise TargetingError(f"triangulation: point behind {c}")
+            m = pc[:2] / pc[2]
+            J = (np.array([[1.0, 0.0, -m[0]], [0.0, 1.0, -m[1]]]) / pc[2]) @ Rt[c]
+            H += J.T @ Wn[c] @ J
+            g += J.T @ Wn[c] @ (n[c] - m)
+        if not refine:
             break
-    res = {c: px[c] - _proj_px(probe, c, X) for c in cams}
-    return X, np.linalg.inv(J), res, X0
+        step = np.linalg.solve(H, g)
+        X = X + step
+        if np.linalg.norm(step) < 1e-13:
+            break
+    res = {}
+    for c in cams:
+        pc = Rt[c] @ (X - Cc[c])
+        res[c] = Jd[c] @ (n[c] - pc[:2] / pc[2])
+    return X, np.linalg.inv(H), res, X0
 
 
 def triangulate(probe: Probe, pixels: dict, q=None, *, refine: bool = True) -> Triangulation:
@@ -498,6 +521,18 @@ def _fit_ellipse(pts):
     return np.array([xc, yc]) * s + m, np.array([ax1, ax2]) * s, np.array([a, b, c, d, e, f])
 
 
+def ellipse_residuals(pts) -> np.ndarray:
+    """First-order geometric distances (N,) of pts (N, 2) to their algebraic ellipse fit."""
+    m = pts.mean(0)
+    sc = pts.std() or 1.0
+    a, b, c, d, e, f = _fit_ellipse(pts)[2]
+    x, y = ((pts - m) / sc).T
+    # _fit_ellipse's conic is in its own normalised coordinates, the same (mean, std) as here
+    Q = a * x * x + b * x * y + c * y * y + d * x + e * y + f
+    g = np.hypot(2 * a * x + b * y + d, b * x + 2 * c * y + e)
+    return Q / np.maximum(g, 1e-15) * sc
+
+
 def circle_edge_points(img, centre, radius_px, *, n_rays: int = 120, band: float = 0.45):
     """Sub-pixel edge points (N, 2) of a dark disc on a brighter surround (or a dark hole inside
     a bright edge band): along rays from `centre`, the first 50 % crossing from the inside level
@@ -632,8 +667,11 @@ def circle_feature_locator(roi: dict | None, expected_diameter_m: float, *, plan
             except TargetingError as exc:
                 errs.append(f"{c}: {exc}")
                 continue
-            d = np.linalg.norm(pts - ctr, axis=1) - rad
-            sig[c] = float(max(np.std(d) * np.sqrt(2.0 / max(len(pts) - 5, 1)), 0.02))
+            # centre sd of a circle fit: edge scatter * sqrt(2 / N), N independent edge points
+            # (neighbouring rays share pixels and the blur correlates neighbours over ~2 px:
+            # at most one independent point per 2 px of circumference)
+            n_eff = min(len(pts), np.pi * rad) - 5
+            sig[c] = float(max(np.std(ellipse_residuals(pts)) * np.sqrt(2.0 / max(n_eff, 1)), 0.01))
             out[c] = ctr
         if len(out) < 2:
             raise TargetingError("Feature Mode: circle found in fewer than two cameras: " + "; ".join(errs))
