@@ -24,5 +24,6 @@ setup(
         "picms_calibration = picms_nodes.nodes.picms_calibration:main",
         "picms_calibrate_offline = picms_nodes.offline:main",
         "picms_demo = picms_nodes.nodes.picms_demo:main",
+        "picms_targeting = picms_nodes.nodes.picms_targeting:main",
     ]},
 )
