@@ -825,6 +825,35 @@ def _line_kernel(length, theta):
 
 # --------------------------------------------------------------------------- stage 4: candidates
 
+def _components(mask):
+    """8-connected components of a sparse binary mask: labels (rows, cols) int32, stats (K, 5)
+    int64 [x, y, w, h, area] and centroids (K, 2) float64 (col, row), component k labelled k + 1.
+
+    The same figures as ``cv2.connectedComponentsWithStats``, whose statistics pass visits every
+    pixel of the frame (~4x the labelling itself here); these come from the few mask pixels."""
+    n_lab, labels = cv2.connectedComponents(mask, connectivity=8, ltype=cv2.CV_32S)
+    k = n_lab - 1
+    if k <= 0:
+        return labels, np.zeros((0, 5), np.int64), np.zeros((0, 2))
+    pts = cv2.findNonZero(mask).reshape(-1, 2)            # (col, row), row-major order
+    xs = pts[:, 0].astype(np.int64)
+    ys = pts[:, 1].astype(np.int64)
+    lab = labels[ys, xs].astype(np.int64) - 1
+    area = np.bincount(lab, minlength=k)
+    cents = np.column_stack([np.bincount(lab, xs.astype(np.float64), k),
+                             np.bincount(lab, ys.astype(np.float64), k)]) / area[:, None]
+    x0 = np.full(k, np.iinfo(np.int64).max)
+    y0 = np.full(k, np.iinfo(np.int64).max)
+    x1 = np.full(k, -1)
+    y1 = np.full(k, -1)
+    np.minimum.at(x0, lab, xs)
+    np.minimum.at(y0, lab, ys)
+    np.maximum.at(x1, lab, xs)
+    np.maximum.at(y1, lab, ys)
+    stats = np.column_stack([x0, y0, x1 - x0 + 1, y1 - y0 + 1, area]).astype(np.int64)
+    return labels, stats, cents
+
+
 @dataclass
 class _Candidates:
     index: np.ndarray       # (C,) component index
@@ -845,9 +874,7 @@ def _candidates(trans, bg, st, drange, rej):
     ratio = cv2.divide(trans, bg, scale=16384.0, dtype=cv2.CV_32F)
     thr = np.float32(1.0 - st.segment_depth)
     mask = (ratio < thr).view(np.uint8)
-    n_lab, labels, stats, cents = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    stats = stats[1:].astype(np.int64)
-    cents = cents[1:].astype(np.float64)
+    labels, stats, cents = _components(mask)
     if drange is not None:
         dmin = drange[0] * (1.0 - st.size_tolerance)
         dmax = drange[1] * (1.0 + st.size_tolerance)
@@ -1200,9 +1227,46 @@ def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True)
     return ex, ey, valid, level, qmin, on_edge, nr
 
 
+def _fit_rows(ex, ey, sel, rows_, fitter):
+    """Ellipse fits of the selected edge points of the given candidates: (len(rows_), 5) with
+    NaN rows where OpenCV failed, and the error messages by row."""
+    out = np.full((len(rows_), 5), np.nan)
+    err = {}
+    for j, c in enumerate(rows_):
+        v = sel[c]
+        pts = np.empty((int(np.count_nonzero(v)), 2))
+        pts[:, 0] = ex[c, v]
+        pts[:, 1] = ey[c, v]
+        try:
+            out[j] = _fit_one(pts, fitter)
+        except cv2.error as exc:
+            err[j] = str(exc)
+    return out, err
+
+
+def _residuals_rows(ex, ey, fits):
+    """``_ellipse_residuals`` of every candidate's points (C, R) against its own fit (C, 5)."""
+    cx, cy, a, b, ang = (fits[:, k, None] for k in range(5))
+    c, s = np.cos(ang), np.sin(ang)
+    dx, dy = ex - cx, ey - cy
+    xp = c * dx + s * dy
+    yp = -s * dx + c * dy
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        f = (xp / a) ** 2 + (yp / b) ** 2 - 1.0
+        gx, gy = 2 * xp / a ** 2, 2 * yp / b ** 2
+        gn = np.hypot(gx, gy)
+        gn = np.where(gn > 0, gn, 1.0)
+        d = f / gn
+        nx = (c * gx - s * gy) / gn
+        ny = (s * gx + c * gy) / gn
+    return d, nx, ny
+
+
 def _measure_edges_and_fit(trans, model, cand, st):
     """Edge points and ellipse fits, ``n_passes`` passes, each re-centred on the previous fit;
-    the last pass removes outliers (5 robust sd, at least 0.1 px) once and refits."""
+    the last pass removes outliers (5 robust sd, at least 0.1 px) once and refits.
+
+    Vectorised over candidates: only the OpenCV fits run one candidate at a time."""
     nc = cand.centre.shape[0]
     centre = cand.centre.copy()
     radius = cand.radius.copy()
@@ -1217,6 +1281,12 @@ def _measure_edges_and_fit(trans, model, cand, st):
     edge_frac = np.zeros(nc)
     level = qmin = None
     n_fits = 0
+
+    def _fail(rows_, msg_of):
+        for c in rows_:
+            ok[c] = False
+            why[c] = msg_of(c)
+
     for pas in range(int(st.n_passes)):
         first = pas == 0
         last_pass = pas == int(st.n_passes) - 1
@@ -1226,59 +1296,67 @@ def _measure_edges_and_fit(trans, model, cand, st):
             qmin = qm
         if last_pass:
             edge_frac = np.count_nonzero(on_edge, axis=1) / np.maximum(np.count_nonzero(valid, axis=1), 1)
-        for c in range(nc):
-            if not ok[c]:
-                continue
-            v = valid[c]
-            if np.count_nonzero(v) < st.min_edge_fraction * nr:
-                ok[c] = False
-                why[c] = f"only {np.count_nonzero(v)} of {nr} rays found an edge"
-                continue
-            pts = np.stack([ex[c, v], ey[c, v]], axis=1)
-            oe = on_edge[c, v] if on_edge is not None else np.zeros(int(np.count_nonzero(v)), bool)
-            try:
-                p = _fit_one(pts, st.ellipse_fitter)
-                n_fits += 1
-                if not last_pass:
-                    if np.all(np.isfinite(p)) and p[3] > 0:
-                        fits[c] = p
-                    else:
-                        ok[c] = False
-                        why[c] = "ellipse fit returned a degenerate ellipse"
-                    continue
-                d, nx, ny = _ellipse_residuals(pts, p)
-                sig = 1.2533 * np.mean(np.abs(d))
-                good = np.abs(d) <= max(5.0 * sig, 0.1)
-                if not good.all() and np.count_nonzero(good) >= st.min_edge_fraction * nr:
-                    pts = pts[good]
-                    oe = oe[good]
-                    p = _fit_one(pts, st.ellipse_fitter)
-                    n_fits += 1
-                    d, nx, ny = _ellipse_residuals(pts, p)
-            except cv2.error as exc:
-                ok[c] = False
-                why[c] = f"ellipse fit failed: {exc}"
-                continue
-            if not np.all(np.isfinite(p)) or p[3] <= 0:
-                ok[c] = False
-                why[c] = "ellipse fit returned a degenerate ellipse"
-                continue
-            fits[c] = p
-            n_pts[c] = len(pts)
-            s2[c] = float(np.dot(d, d)) / max(1, len(pts) - 5)
-            rms[c] = np.sqrt(np.mean(d ** 2))
-            normals[c] = (nx, ny, d, oe)
-            oe_w = oe
-            if st.background_edge_refit and np.any(oe) and np.count_nonzero(~oe_w) >= max(8, 0.5 * len(oe)):
+        n_valid = np.count_nonzero(valid, axis=1)
+        few = ok & (n_valid < st.min_edge_fraction * nr)
+        _fail(np.nonzero(few)[0], lambda c: f"only {n_valid[c]} of {nr} rays found an edge")
+        rows_ = np.nonzero(ok)[0]
+        p, err = _fit_rows(ex, ey, valid, rows_, st.ellipse_fitter)
+        n_fits += len(rows_) - len(err)
+        if last_pass and len(rows_):
+            # outliers beyond 5 robust sd (at least 0.1 px) removed once, then refitted
+            sel = valid[rows_].copy()
+            d, _, _ = _residuals_rows(ex[rows_], ey[rows_], p)
+            ad = np.where(sel, np.abs(d), 0.0)
+            sig = 1.2533 * ad.sum(axis=1) / np.maximum(sel.sum(axis=1), 1)
+            good = sel & (ad <= np.maximum(5.0 * sig, 0.1)[:, None])
+            n_good = good.sum(axis=1)
+            redo = np.nonzero((n_good < sel.sum(axis=1)) & (n_good >= st.min_edge_fraction * nr)
+                              & np.all(np.isfinite(p), axis=1))[0]
+            redo = np.array([j for j in redo if j not in err], dtype=np.intp)
+            if redo.size:
+                sel[redo] = good[redo]
+                full = np.zeros_like(valid)
+                full[rows_[redo]] = good[redo]
+                p2, err2 = _fit_rows(ex, ey, full, rows_[redo], st.ellipse_fitter)
+                n_fits += redo.size - len(err2)
+                p[redo] = p2
+                for j, e in err2.items():
+                    err[int(redo[j])] = e
+        for j, e in err.items():
+            ok[rows_[j]] = False
+            why[rows_[j]] = f"ellipse fit failed: {e}"
+        bad = np.array([j not in err and not (np.all(np.isfinite(p[j])) and p[j, 3] > 0)
+                        for j in range(len(rows_))], bool)
+        _fail(rows_[bad], lambda c: "ellipse fit returned a degenerate ellipse")
+        keep = np.array([j not in err for j in range(len(rows_))], bool) & ~bad
+        fits[rows_[keep]] = p[keep]
+        if last_pass and len(rows_):
+            kk = np.nonzero(keep)[0]
+            cc = rows_[kk]
+            sel = sel[kk]
+            d, nx, ny = _residuals_rows(ex[cc], ey[cc], p[kk])
+            n = sel.sum(axis=1)
+            dd = np.where(sel, d, 0.0)
+            ssq = np.einsum("ij,ij->i", dd, dd)
+            n_pts[cc] = n
+            s2[cc] = ssq / np.maximum(1, n - 5)
+            rms[cc] = np.sqrt(ssq / n)
+            oe_all = on_edge[cc] & sel
+            for j, c in enumerate(cc):
+                v = sel[j]
+                normals[c] = (nx[j, v], ny[j, v], d[j, v], oe_all[j, v])
+            if st.background_edge_refit:
                 # the same fit without the points on a background edge: the difference is the
                 # data's own estimate of what the band or step does to this centre
-                try:
-                    p2 = _fit_one(pts[~oe_w], st.ellipse_fitter)
-                    n_fits += 1
-                    if np.all(np.isfinite(p2)):
-                        shift[c] = p[:2] - p2[:2]
-                except cv2.error:
-                    pass
+                n_oe = oe_all.sum(axis=1)
+                rf = np.nonzero((n_oe > 0) & (n - n_oe >= np.maximum(8, 0.5 * n)))[0]
+                if rf.size:
+                    off = np.zeros_like(valid)
+                    off[cc[rf]] = sel[rf] & ~oe_all[rf]
+                    p3, err3 = _fit_rows(ex, ey, off, cc[rf], st.ellipse_fitter)
+                    n_fits += rf.size - len(err3)
+                    fin = np.all(np.isfinite(p3), axis=1)
+                    shift[cc[rf[fin]]] = p[kk[rf[fin]], :2] - p3[fin, :2]
         centre = np.where(ok[:, None], fits[:, :2], centre)
         radius = np.where(ok, np.sqrt(np.abs(fits[:, 2] * fits[:, 3])), radius)
     return _Measurement(ok=ok, why=why, fits=fits, n_pts=n_pts, rms=rms, s2=s2, normals=normals,
