@@ -84,6 +84,7 @@ columns are (col, row).
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import cv2
@@ -636,7 +637,8 @@ def _check_range(diameter_px_range):
 
 def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, expected_shape=None,
                    diameter_px_range=None, settings: DetectionSettings | None = None,
-                   sdd_px: float | None = None, principal_point_px=None, dark=None) -> FrameDetections:
+                   sdd_px: float | None = None, principal_point_px=None, dark=None,
+                   timing: dict | None = None) -> FrameDetections:
     """Find and measure every sphere shadow in one projection.
 
     Parameters
@@ -661,6 +663,10 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
         Defaults to the detector centre ((cols-1)/2, (rows-1)/2).
     dark : float or ndarray of shape (rows, cols), optional
         Dark (offset) counts.
+    timing : dict, optional
+        Filled with the CPU seconds of each stage (added to what is there): ``flat_field``,
+        ``background``, ``candidates``, ``local_background``, ``edges_fit``, ``rejection``,
+        ``uncertainty`` (profiling; the live node and the benchmarks use it).
 
     Returns
     -------
@@ -675,22 +681,44 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
     """
     st = settings if settings is not None else DetectionSettings()
     drange = _check_range(diameter_px_range)
+    clock = _StageClock(timing)
     trans = to_transmission(image, encoding, flat_field_counts, expected_shape, dark)     # 1 flat field
     noise = _noise_level(trans)
+    clock.lap("flat_field")
     bg = _segmentation_background(trans, st, drange)                                      # 2 background
+    clock.lap("background")
     rej = _Rejections()
     cand = _candidates(trans, bg, st, drange, rej)                                        # 3 candidates
     cand.noise = noise
+    clock.lap("candidates")
     if len(cand.index) == 0:
         return _assemble([], rej, 0, sdd_px, principal_point_px, trans.shape, np.zeros((0, 2)),
                          "no sphere shadow accepted")
     model, hot = _local_backgrounds(trans, bg, cand, st)                                  # 4 local background,
-    #                                                                                       hot pixels
+    clock.lap("local_background")                                                         # hot pixels
     meas = _measure_edges_and_fit(trans, model, cand, st)                                 # 5 edges, 6 fit
+    clock.lap("edges_fit")
     accepted = _screen_fits(meas, cand, model, st, drange, rej)                           # 7 rejection
+    clock.lap("rejection")
     accepted = _centre_uncertainty(accepted, meas, model, st)                             # 8 uncertainty
-    return _assemble(accepted, rej, meas.n_fits, sdd_px, principal_point_px, trans.shape, hot, "",
-                     meas=meas, cand=cand)
+    out = _assemble(accepted, rej, meas.n_fits, sdd_px, principal_point_px, trans.shape, hot, "",
+                    meas=meas, cand=cand)
+    clock.lap("uncertainty")
+    return out
+
+
+class _StageClock:
+    """Adds the CPU time since the previous lap to ``timing[stage]`` (nothing without a dict)."""
+
+    def __init__(self, timing):
+        self.t = timing
+        self.c = time.process_time() if timing is not None else 0.0
+
+    def lap(self, stage):
+        if self.t is not None:
+            c = time.process_time()
+            self.t[stage] = self.t.get(stage, 0.0) + c - self.c
+            self.c = c
 
 
 class _Rejections:
