@@ -1192,7 +1192,8 @@ class _Measurement:
     n_pts: np.ndarray
     rms: np.ndarray
     s2: np.ndarray          # (C,) dof-corrected edge variance
-    normals: list           # per candidate (nx, ny) arrays of the final fit
+    normals: list           # per candidate (nx, ny, d, on_edge) arrays of the final fit
+    sums: np.ndarray        # (C, 3) sum of nx^2, nx ny, ny^2 over each final fit's points
     qmin: np.ndarray
     edge_frac: np.ndarray   # fraction of edge points on a strong background edge
     n_fits: int
@@ -1324,6 +1325,7 @@ def _measure_edges_and_fit(trans, model, cand, st):
     rms = np.full(nc, np.nan)
     s2 = np.full(nc, np.nan)
     normals = [None] * nc
+    sums = np.zeros((nc, 3))
     shift = np.zeros((nc, 2))
     edge_frac = np.zeros(nc)
     level = qmin = None
@@ -1389,9 +1391,12 @@ def _measure_edges_and_fit(trans, model, cand, st):
             s2[cc] = ssq / np.maximum(1, n - 5)
             rms[cc] = np.sqrt(ssq / n)
             oe_all = on_edge[cc] & sel
-            for j, c in enumerate(cc):
+            nxs, nys = np.where(sel, nx, 0.0), np.where(sel, ny, 0.0)
+            sums[cc] = np.column_stack([np.einsum("ij,ij->i", nxs, nxs), np.einsum("ij,ij->i", nxs, nys),
+                                        np.einsum("ij,ij->i", nys, nys)])
+            for j in np.nonzero(oe_all.any(axis=1))[0]:      # the cluster terms need the points
                 v = sel[j]
-                normals[c] = (nx[j, v], ny[j, v], d[j, v], oe_all[j, v])
+                normals[cc[j]] = (nx[j, v], ny[j, v], d[j, v], oe_all[j, v])
             if st.background_edge_refit:
                 # the same fit without the points on a background edge: the difference is the
                 # data's own estimate of what the band or step does to this centre
@@ -1406,7 +1411,7 @@ def _measure_edges_and_fit(trans, model, cand, st):
                     shift[cc[rf[fin]]] = p[kk[rf[fin]], :2] - p3[fin, :2]
         centre = np.where(ok[:, None], fits[:, :2], centre)
         radius = np.where(ok, np.sqrt(np.abs(fits[:, 2] * fits[:, 3])), radius)
-    return _Measurement(ok=ok, why=why, fits=fits, n_pts=n_pts, rms=rms, s2=s2, normals=normals,
+    return _Measurement(ok=ok, why=why, fits=fits, n_pts=n_pts, rms=rms, s2=s2, normals=normals, sums=sums,
                         qmin=qmin, edge_frac=edge_frac, n_fits=n_fits, edge_shift=shift)
 
 
@@ -1473,27 +1478,32 @@ def _centre_uncertainty(accepted, meas, model, st):
     ``background_edge_sigma_px`` in quadrature across the structure for shadows whose edge
     crosses a background edge. Returns a list of (c, cov, on_edge)."""
     out = []
-    for c in accepted:
-        nx, ny, d, oe = meas.normals[c]
-        p = meas.fits[c]
-        sxx, sxy, syy = np.dot(nx, nx), np.dot(nx, ny), np.dot(ny, ny)
-        det_ = sxx * syy - sxy * sxy
-        infl = max(1.0, meas.n_pts[c] / (np.pi * np.sqrt(p[2] * p[3])))
-        if det_ <= 0:
+    if not accepted:
+        return out
+    acc = np.asarray(accepted, dtype=np.intp)
+    sxx, sxy, syy = meas.sums[acc].T
+    det_ = sxx * syy - sxy * sxy
+    p = meas.fits[acc]
+    infl = np.maximum(1.0, meas.n_pts[acc] / (np.pi * np.sqrt(p[:, 2] * p[:, 3])))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ainv = np.stack([np.stack([syy, -sxy], -1), np.stack([-sxy, sxx], -1)], -2) / det_[:, None, None]
+    cov_all = (infl * meas.s2[acc])[:, None, None] * ainv
+    on_all = meas.edge_frac[acc] > st.background_edge_min_fraction
+    for j, c in enumerate(accepted):
+        if det_[j] <= 0:
             out.append((c, np.full((2, 2), np.nan), False))
             continue
-        ainv = np.array([[syy, -sxy], [-sxy, sxx]]) / det_
-        cov = infl * meas.s2[c] * ainv
-        on_edge = bool(meas.edge_frac[c] > st.background_edge_min_fraction)
-        if on_edge and st.background_edge_clusters:
+        cov = cov_all[j]
+        on_edge = bool(on_all[j])
+        if on_edge and st.background_edge_clusters and meas.normals[c] is not None:
             # edge points on a background edge (band or step) err together: each run of them is
             # one cluster of a cluster-robust (sandwich) covariance, from their own residuals
-            runs = _runs(oe)
+            nx, ny, d, oe = meas.normals[c]
             m = np.zeros((2, 2))
-            for g in runs:
+            for g in _runs(oe):
                 sg = np.array([np.dot(nx[g], d[g]), np.dot(ny[g], d[g])])
                 m += np.outer(sg, sg)
-            cov = cov + st.background_edge_clusters * (ainv @ m @ ainv)
+            cov = cov + st.background_edge_clusters * (ainv[j] @ m @ ainv[j])
         if on_edge and st.background_edge_refit:
             cov = cov + np.outer(meas.edge_shift[c], meas.edge_shift[c])
         if on_edge and st.background_edge_sigma_px:
