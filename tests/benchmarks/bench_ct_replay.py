@@ -14,7 +14,10 @@ and checks that both give the same results bit for bit (every frame's centres, i
 static estimate and covariance; every error motion). Reports frames/s end to end and per stage
 (read, decode, detect, identify, solve) in ms per frame (CPU time of the stage summed over the
 processes that ran it, divided by the frames), with the conditions: nproc, load average
-before and after, the benchmark's own CPU use.
+before and after, the benchmark's own CPU use; and the rate the measured CPU per frame allows on
+an otherwise idle machine (``idle_machine_bound_frames_per_s``: the processes' cores divided by
+the total CPU per frame, capped by the main process's own read + identify + solve share; an
+upper bound that ignores inter-process transfer and memory bandwidth).
 
 Usage:  .venv/bin/python tests/benchmarks/bench_ct_replay.py [--workers 2] [--positions 4] [--projections 180]
 Prints a table, then ONE JSON line.
@@ -139,6 +142,16 @@ def main():
                       "ms_per_frame": {k: round(1e3 * v / max(n, 1), 2) for k, v in timing.items()},
                       "static_success": bool(res.static is not None and res.static.success),
                       "positions": len(res.acc.positions)}
+        # what the CPU use implies for an otherwise idle machine: every core busy with this
+        # replay (total CPU per frame over the cores), and the main process's own share
+        # (read + identify + solve run there when workers > 1) as a second limit
+        ms = runs[name]["ms_per_frame"]
+        total = sum(ms.values())
+        main_ms = total if workers <= 1 else ms.get("read", 0) + ms.get("identify", 0) + ms.get("solve", 0)
+        n_cores = len(os.sched_getaffinity(0))
+        bound = min(1e3 * min(workers + (workers > 1), n_cores) / max(total, 1e-9), 1e3 / max(main_ms, 1e-9))
+        runs[name]["cpu_ms_per_frame_total"] = round(total, 2)
+        runs[name]["idle_machine_bound_frames_per_s"] = round(bound, 1)
         results[name] = res
         print(f"[bench] {name}: {n} frames in {wall:.1f} s = {n / wall:.1f} frames/s; "
               f"ms/frame per stage {runs[name]['ms_per_frame']}", flush=True)

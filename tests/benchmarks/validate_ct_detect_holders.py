@@ -133,6 +133,18 @@ def main():
         t = time.perf_counter()
         tb = textbook(img, dr[1])
         r["textbook"]["t"] += time.perf_counter() - t
+        # why each expected sphere that ours did not accept was missed: the reason code of the
+        # nearest refused candidate (within a radius), else "no candidate"
+        miss = r["ours"].setdefault("missed_by_reason", {})
+        exp_ = expected(tr)
+        for i in np.nonzero(exp_)[0]:
+            if len(det) and np.min(np.linalg.norm(det.centre_px - tr.centre_px[i], axis=1)) < 0.5:
+                continue
+            rc = det.rejected.centre_px
+            dd = np.linalg.norm(rc - tr.centre_px[i], axis=1) if len(rc) else np.zeros(0)
+            why = det.rejected.reason[int(np.argmin(dd))] if len(dd) and dd.min() < tr.semi_axes_px[i, 0] else \
+                "no candidate"
+            miss[why] = miss.get(why, 0) + 1
         for m, (c, s) in (("ours", (det.centre_px, det.centre_std_px)), ("textbook", (tb, None))):
             f, ne, fa, e, z = score(c, s, tr)
             q = r[m]
@@ -157,10 +169,14 @@ def main():
                    "sd_px": e.std(axis=0).round(4).tolist() if len(e) else None,
                    "robust_z": rz.round(2).tolist() if m == "ours" else None,
                    "ms_per_frame": round(1e3 * q["t"] / q["n_frames"], 1)}
+            if "missed_by_reason" in q:
+                row["missed_by_reason"] = q["missed_by_reason"]
             summary[f"{key}_{m}"] = row
             print(f"{key:14s} {m:9s} {q['found']:4d}/{q['exp']:<4d} {q['all_frames']:2d}/{q['n_frames']:<2d} "
                   f"{q['false']:5d} {str(row['bias_px']):>17s} {str(row['sd_px']):>15s} "
                   f"{str(row['robust_z']):>11s} {row['ms_per_frame']:6.1f}")
+    for key, per in res.items():
+        print(f"{key}: ours missed {per['ours'].get('missed_by_reason', {})}")
     summary["cpu_count"] = os.cpu_count()
     print(json.dumps(summary))
 

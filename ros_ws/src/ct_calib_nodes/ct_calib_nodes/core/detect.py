@@ -84,6 +84,7 @@ columns are (col, row).
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import cv2
@@ -636,7 +637,8 @@ def _check_range(diameter_px_range):
 
 def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, expected_shape=None,
                    diameter_px_range=None, settings: DetectionSettings | None = None,
-                   sdd_px: float | None = None, principal_point_px=None, dark=None) -> FrameDetections:
+                   sdd_px: float | None = None, principal_point_px=None, dark=None,
+                   timing: dict | None = None) -> FrameDetections:
     """Find and measure every sphere shadow in one projection.
 
     Parameters
@@ -661,6 +663,10 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
         Defaults to the detector centre ((cols-1)/2, (rows-1)/2).
     dark : float or ndarray of shape (rows, cols), optional
         Dark (offset) counts.
+    timing : dict, optional
+        Filled with the CPU seconds of each stage (added to what is there): ``flat_field``,
+        ``background``, ``candidates``, ``local_background``, ``edges_fit``, ``rejection``,
+        ``uncertainty`` (profiling; the live node and the benchmarks use it).
 
     Returns
     -------
@@ -675,22 +681,44 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
     """
     st = settings if settings is not None else DetectionSettings()
     drange = _check_range(diameter_px_range)
+    clock = _StageClock(timing)
     trans = to_transmission(image, encoding, flat_field_counts, expected_shape, dark)     # 1 flat field
     noise = _noise_level(trans)
+    clock.lap("flat_field")
     bg = _segmentation_background(trans, st, drange)                                      # 2 background
+    clock.lap("background")
     rej = _Rejections()
     cand = _candidates(trans, bg, st, drange, rej)                                        # 3 candidates
     cand.noise = noise
+    clock.lap("candidates")
     if len(cand.index) == 0:
         return _assemble([], rej, 0, sdd_px, principal_point_px, trans.shape, np.zeros((0, 2)),
                          "no sphere shadow accepted")
     model, hot = _local_backgrounds(trans, bg, cand, st)                                  # 4 local background,
-    #                                                                                       hot pixels
+    clock.lap("local_background")                                                         # hot pixels
     meas = _measure_edges_and_fit(trans, model, cand, st)                                 # 5 edges, 6 fit
+    clock.lap("edges_fit")
     accepted = _screen_fits(meas, cand, model, st, drange, rej)                           # 7 rejection
+    clock.lap("rejection")
     accepted = _centre_uncertainty(accepted, meas, model, st)                             # 8 uncertainty
-    return _assemble(accepted, rej, meas.n_fits, sdd_px, principal_point_px, trans.shape, hot, "",
-                     meas=meas, cand=cand)
+    out = _assemble(accepted, rej, meas.n_fits, sdd_px, principal_point_px, trans.shape, hot, "",
+                    meas=meas, cand=cand)
+    clock.lap("uncertainty")
+    return out
+
+
+class _StageClock:
+    """Adds the CPU time since the previous lap to ``timing[stage]`` (nothing without a dict)."""
+
+    def __init__(self, timing):
+        self.t = timing
+        self.c = time.process_time() if timing is not None else 0.0
+
+    def lap(self, stage):
+        if self.t is not None:
+            c = time.process_time()
+            self.t[stage] = self.t.get(stage, 0.0) + c - self.c
+            self.c = c
 
 
 class _Rejections:
@@ -743,13 +771,13 @@ def _repair_hot_pixels(trans, win, yy, xx, noise, st):
         return np.zeros((0, 2))
     k = np.float32(st.hot_pixel_sigma * noise)
     cen = win[:, 1:-1, 1:-1]
-    nb = [win[:, 1 + dr:win.shape[1] - 1 + dr, 1 + dc:win.shape[2] - 1 + dc]
-          for dr in (-1, 0, 1) for dc in (-1, 0, 1) if dr or dc]
-    mx = nb[0].copy()
-    mn = nb[0].copy()
-    for a in nb[1:]:
-        np.maximum(mx, a, out=mx)
-        np.minimum(mn, a, out=mn)
+    # max / min of the 8 neighbours: a dilation / erosion with a 3x3 ring of the windows stacked
+    # into one image (the rows where two windows meet are not used: every interior pixel's
+    # neighbours lie in its own window)
+    nc_, h_, w_ = win.shape
+    flat = win.reshape(nc_ * h_, w_)
+    mx = cv2.dilate(flat, _RING3, borderType=cv2.BORDER_REPLICATE).reshape(win.shape)[:, 1:-1, 1:-1]
+    mn = cv2.erode(flat, _RING3, borderType=cv2.BORDER_REPLICATE).reshape(win.shape)[:, 1:-1, 1:-1]
     ci, ri, cj = np.nonzero((cen > mx + k) | (cen < mn - k))
     if ci.size == 0:
         return np.zeros((0, 2))
@@ -780,7 +808,9 @@ def _segmentation_background(trans, st, drange):
     keeps straight steps of any orientation (plate edges, field stops: a monotone profile is
     its own closing); the minimum keeps dark bands (tube walls, a plate seen edge-on) that
     are long in at least one of the directions. Computed at half resolution (area average,
-    which also lowers the noise) and interpolated back. uint16 (rows, cols), T x 16384."""
+    which also lowers the noise) and interpolated back. (Quarter resolution for 2048^2 frames
+    was tried: 1.4x faster overall, but it accepted a plate-corner shadow 0.12 px off that the
+    half-resolution background refuses, and left specks along tube walls.) uint16 (rows, cols), T x 16384."""
     if st.background_window_px is not None:
         win = int(st.background_window_px)
     elif drange is not None:
@@ -825,6 +855,35 @@ def _line_kernel(length, theta):
 
 # --------------------------------------------------------------------------- stage 4: candidates
 
+def _components(mask):
+    """8-connected components of a sparse binary mask: labels (rows, cols) int32, stats (K, 5)
+    int64 [x, y, w, h, area] and centroids (K, 2) float64 (col, row), component k labelled k + 1.
+
+    The same figures as ``cv2.connectedComponentsWithStats``, whose statistics pass visits every
+    pixel of the frame (~4x the labelling itself here); these come from the few mask pixels."""
+    n_lab, labels = cv2.connectedComponents(mask, connectivity=8, ltype=cv2.CV_32S)
+    k = n_lab - 1
+    if k <= 0:
+        return labels, np.zeros((0, 5), np.int64), np.zeros((0, 2))
+    pts = cv2.findNonZero(mask).reshape(-1, 2)            # (col, row), row-major order
+    xs = pts[:, 0].astype(np.int64)
+    ys = pts[:, 1].astype(np.int64)
+    lab = labels[ys, xs].astype(np.int64) - 1
+    area = np.bincount(lab, minlength=k)
+    cents = np.column_stack([np.bincount(lab, xs.astype(np.float64), k),
+                             np.bincount(lab, ys.astype(np.float64), k)]) / area[:, None]
+    x0 = np.full(k, np.iinfo(np.int64).max)
+    y0 = np.full(k, np.iinfo(np.int64).max)
+    x1 = np.full(k, -1)
+    y1 = np.full(k, -1)
+    np.minimum.at(x0, lab, xs)
+    np.minimum.at(y0, lab, ys)
+    np.maximum.at(x1, lab, xs)
+    np.maximum.at(y1, lab, ys)
+    stats = np.column_stack([x0, y0, x1 - x0 + 1, y1 - y0 + 1, area]).astype(np.int64)
+    return labels, stats, cents
+
+
 @dataclass
 class _Candidates:
     index: np.ndarray       # (C,) component index
@@ -845,9 +904,7 @@ def _candidates(trans, bg, st, drange, rej):
     ratio = cv2.divide(trans, bg, scale=16384.0, dtype=cv2.CV_32F)
     thr = np.float32(1.0 - st.segment_depth)
     mask = (ratio < thr).view(np.uint8)
-    n_lab, labels, stats, cents = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    stats = stats[1:].astype(np.int64)
-    cents = cents[1:].astype(np.float64)
+    labels, stats, cents = _components(mask)
     if drange is not None:
         dmin = drange[0] * (1.0 - st.size_tolerance)
         dmax = drange[1] * (1.0 + st.size_tolerance)
@@ -1135,7 +1192,8 @@ class _Measurement:
     n_pts: np.ndarray
     rms: np.ndarray
     s2: np.ndarray          # (C,) dof-corrected edge variance
-    normals: list           # per candidate (nx, ny) arrays of the final fit
+    normals: list           # per candidate (nx, ny, d, on_edge) arrays of the final fit
+    sums: np.ndarray        # (C, 3) sum of nx^2, nx ny, ny^2 over each final fit's points
     qmin: np.ndarray
     edge_frac: np.ndarray   # fraction of edge points on a strong background edge
     n_fits: int
@@ -1200,9 +1258,63 @@ def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True)
     return ex, ey, valid, level, qmin, on_edge, nr
 
 
+def _fit_rows(ex, ey, sel, rows_, fitter):
+    """Ellipse fits of the selected edge points of the given candidates: (len(rows_), 5) with
+    NaN rows where OpenCV failed, and the error messages by row. The same numbers as
+    :func:`_fit_one` (float32 points to OpenCV), with the per-call overhead taken out."""
+    out = np.full((len(rows_), 5), np.nan)
+    err = {}
+    if fitter == "geometric":
+        for j, c in enumerate(rows_):
+            v = sel[c]
+            try:
+                out[j] = _fit_one(np.column_stack([ex[c, v], ey[c, v]]), fitter)
+            except cv2.error as exc:
+                err[j] = str(exc)
+        return out, err
+    fit = {"fitEllipseAMS": cv2.fitEllipseAMS, "fitEllipseDirect": cv2.fitEllipseDirect}.get(fitter, cv2.fitEllipse)
+    p32 = np.empty(ex.shape + (2,), np.float32)
+    p32[..., 0] = ex
+    p32[..., 1] = ey
+    half_pi = 0.5 * np.pi
+    for j, c in enumerate(rows_):
+        try:
+            (cx, cy), (w, h), ang = fit(p32[c][sel[c]])
+        except cv2.error as exc:
+            err[j] = str(exc)
+            continue
+        ang = np.deg2rad(ang)
+        a, b = 0.5 * w, 0.5 * h
+        if b > a:
+            a, b = b, a
+            ang += half_pi
+        out[j] = (cx, cy, a, b, ang)
+    return out, err
+
+
+def _residuals_rows(ex, ey, fits):
+    """``_ellipse_residuals`` of every candidate's points (C, R) against its own fit (C, 5)."""
+    cx, cy, a, b, ang = (fits[:, k, None] for k in range(5))
+    c, s = np.cos(ang), np.sin(ang)
+    dx, dy = ex - cx, ey - cy
+    xp = c * dx + s * dy
+    yp = -s * dx + c * dy
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        f = (xp / a) ** 2 + (yp / b) ** 2 - 1.0
+        gx, gy = 2 * xp / a ** 2, 2 * yp / b ** 2
+        gn = np.hypot(gx, gy)
+        gn = np.where(gn > 0, gn, 1.0)
+        d = f / gn
+        nx = (c * gx - s * gy) / gn
+        ny = (s * gx + c * gy) / gn
+    return d, nx, ny
+
+
 def _measure_edges_and_fit(trans, model, cand, st):
     """Edge points and ellipse fits, ``n_passes`` passes, each re-centred on the previous fit;
-    the last pass removes outliers (5 robust sd, at least 0.1 px) once and refits."""
+    the last pass removes outliers (5 robust sd, at least 0.1 px) once and refits.
+
+    Vectorised over candidates: only the OpenCV fits run one candidate at a time."""
     nc = cand.centre.shape[0]
     centre = cand.centre.copy()
     radius = cand.radius.copy()
@@ -1213,10 +1325,17 @@ def _measure_edges_and_fit(trans, model, cand, st):
     rms = np.full(nc, np.nan)
     s2 = np.full(nc, np.nan)
     normals = [None] * nc
+    sums = np.zeros((nc, 3))
     shift = np.zeros((nc, 2))
     edge_frac = np.zeros(nc)
     level = qmin = None
     n_fits = 0
+
+    def _fail(rows_, msg_of):
+        for c in rows_:
+            ok[c] = False
+            why[c] = msg_of(c)
+
     for pas in range(int(st.n_passes)):
         first = pas == 0
         last_pass = pas == int(st.n_passes) - 1
@@ -1226,62 +1345,73 @@ def _measure_edges_and_fit(trans, model, cand, st):
             qmin = qm
         if last_pass:
             edge_frac = np.count_nonzero(on_edge, axis=1) / np.maximum(np.count_nonzero(valid, axis=1), 1)
-        for c in range(nc):
-            if not ok[c]:
-                continue
-            v = valid[c]
-            if np.count_nonzero(v) < st.min_edge_fraction * nr:
-                ok[c] = False
-                why[c] = f"only {np.count_nonzero(v)} of {nr} rays found an edge"
-                continue
-            pts = np.stack([ex[c, v], ey[c, v]], axis=1)
-            oe = on_edge[c, v] if on_edge is not None else np.zeros(int(np.count_nonzero(v)), bool)
-            try:
-                p = _fit_one(pts, st.ellipse_fitter)
-                n_fits += 1
-                if not last_pass:
-                    if np.all(np.isfinite(p)) and p[3] > 0:
-                        fits[c] = p
-                    else:
-                        ok[c] = False
-                        why[c] = "ellipse fit returned a degenerate ellipse"
-                    continue
-                d, nx, ny = _ellipse_residuals(pts, p)
-                sig = 1.2533 * np.mean(np.abs(d))
-                good = np.abs(d) <= max(5.0 * sig, 0.1)
-                if not good.all() and np.count_nonzero(good) >= st.min_edge_fraction * nr:
-                    pts = pts[good]
-                    oe = oe[good]
-                    p = _fit_one(pts, st.ellipse_fitter)
-                    n_fits += 1
-                    d, nx, ny = _ellipse_residuals(pts, p)
-            except cv2.error as exc:
-                ok[c] = False
-                why[c] = f"ellipse fit failed: {exc}"
-                continue
-            if not np.all(np.isfinite(p)) or p[3] <= 0:
-                ok[c] = False
-                why[c] = "ellipse fit returned a degenerate ellipse"
-                continue
-            fits[c] = p
-            n_pts[c] = len(pts)
-            s2[c] = float(np.dot(d, d)) / max(1, len(pts) - 5)
-            rms[c] = np.sqrt(np.mean(d ** 2))
-            normals[c] = (nx, ny, d, oe)
-            oe_w = oe
-            if st.background_edge_refit and np.any(oe) and np.count_nonzero(~oe_w) >= max(8, 0.5 * len(oe)):
+        n_valid = np.count_nonzero(valid, axis=1)
+        few = ok & (n_valid < st.min_edge_fraction * nr)
+        _fail(np.nonzero(few)[0], lambda c: f"only {n_valid[c]} of {nr} rays found an edge")
+        rows_ = np.nonzero(ok)[0]
+        p, err = _fit_rows(ex, ey, valid, rows_, st.ellipse_fitter)
+        n_fits += len(rows_) - len(err)
+        if last_pass and len(rows_):
+            # outliers beyond 5 robust sd (at least 0.1 px) removed once, then refitted
+            sel = valid[rows_].copy()
+            d, _, _ = _residuals_rows(ex[rows_], ey[rows_], p)
+            ad = np.where(sel, np.abs(d), 0.0)
+            sig = 1.2533 * ad.sum(axis=1) / np.maximum(sel.sum(axis=1), 1)
+            good = sel & (ad <= np.maximum(5.0 * sig, 0.1)[:, None])
+            n_good = good.sum(axis=1)
+            redo = np.nonzero((n_good < sel.sum(axis=1)) & (n_good >= st.min_edge_fraction * nr)
+                              & np.all(np.isfinite(p), axis=1))[0]
+            redo = np.array([j for j in redo if j not in err], dtype=np.intp)
+            if redo.size:
+                sel[redo] = good[redo]
+                full = np.zeros_like(valid)
+                full[rows_[redo]] = good[redo]
+                p2, err2 = _fit_rows(ex, ey, full, rows_[redo], st.ellipse_fitter)
+                n_fits += redo.size - len(err2)
+                p[redo] = p2
+                for j, e in err2.items():
+                    err[int(redo[j])] = e
+        for j, e in err.items():
+            ok[rows_[j]] = False
+            why[rows_[j]] = f"ellipse fit failed: {e}"
+        bad = np.array([j not in err and not (np.all(np.isfinite(p[j])) and p[j, 3] > 0)
+                        for j in range(len(rows_))], bool)
+        _fail(rows_[bad], lambda c: "ellipse fit returned a degenerate ellipse")
+        keep = np.array([j not in err for j in range(len(rows_))], bool) & ~bad
+        fits[rows_[keep]] = p[keep]
+        if last_pass and len(rows_):
+            kk = np.nonzero(keep)[0]
+            cc = rows_[kk]
+            sel = sel[kk]
+            d, nx, ny = _residuals_rows(ex[cc], ey[cc], p[kk])
+            n = sel.sum(axis=1)
+            dd = np.where(sel, d, 0.0)
+            ssq = np.einsum("ij,ij->i", dd, dd)
+            n_pts[cc] = n
+            s2[cc] = ssq / np.maximum(1, n - 5)
+            rms[cc] = np.sqrt(ssq / n)
+            oe_all = on_edge[cc] & sel
+            nxs, nys = np.where(sel, nx, 0.0), np.where(sel, ny, 0.0)
+            sums[cc] = np.column_stack([np.einsum("ij,ij->i", nxs, nxs), np.einsum("ij,ij->i", nxs, nys),
+                                        np.einsum("ij,ij->i", nys, nys)])
+            for j in np.nonzero(oe_all.any(axis=1))[0]:      # the cluster terms need the points
+                v = sel[j]
+                normals[cc[j]] = (nx[j, v], ny[j, v], d[j, v], oe_all[j, v])
+            if st.background_edge_refit:
                 # the same fit without the points on a background edge: the difference is the
                 # data's own estimate of what the band or step does to this centre
-                try:
-                    p2 = _fit_one(pts[~oe_w], st.ellipse_fitter)
-                    n_fits += 1
-                    if np.all(np.isfinite(p2)):
-                        shift[c] = p[:2] - p2[:2]
-                except cv2.error:
-                    pass
+                n_oe = oe_all.sum(axis=1)
+                rf = np.nonzero((n_oe > 0) & (n - n_oe >= np.maximum(8, 0.5 * n)))[0]
+                if rf.size:
+                    off = np.zeros_like(valid)
+                    off[cc[rf]] = sel[rf] & ~oe_all[rf]
+                    p3, err3 = _fit_rows(ex, ey, off, cc[rf], st.ellipse_fitter)
+                    n_fits += rf.size - len(err3)
+                    fin = np.all(np.isfinite(p3), axis=1)
+                    shift[cc[rf[fin]]] = p[kk[rf[fin]], :2] - p3[fin, :2]
         centre = np.where(ok[:, None], fits[:, :2], centre)
         radius = np.where(ok, np.sqrt(np.abs(fits[:, 2] * fits[:, 3])), radius)
-    return _Measurement(ok=ok, why=why, fits=fits, n_pts=n_pts, rms=rms, s2=s2, normals=normals,
+    return _Measurement(ok=ok, why=why, fits=fits, n_pts=n_pts, rms=rms, s2=s2, normals=normals, sums=sums,
                         qmin=qmin, edge_frac=edge_frac, n_fits=n_fits, edge_shift=shift)
 
 
@@ -1348,27 +1478,32 @@ def _centre_uncertainty(accepted, meas, model, st):
     ``background_edge_sigma_px`` in quadrature across the structure for shadows whose edge
     crosses a background edge. Returns a list of (c, cov, on_edge)."""
     out = []
-    for c in accepted:
-        nx, ny, d, oe = meas.normals[c]
-        p = meas.fits[c]
-        sxx, sxy, syy = np.dot(nx, nx), np.dot(nx, ny), np.dot(ny, ny)
-        det_ = sxx * syy - sxy * sxy
-        infl = max(1.0, meas.n_pts[c] / (np.pi * np.sqrt(p[2] * p[3])))
-        if det_ <= 0:
+    if not accepted:
+        return out
+    acc = np.asarray(accepted, dtype=np.intp)
+    sxx, sxy, syy = meas.sums[acc].T
+    det_ = sxx * syy - sxy * sxy
+    p = meas.fits[acc]
+    infl = np.maximum(1.0, meas.n_pts[acc] / (np.pi * np.sqrt(p[:, 2] * p[:, 3])))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ainv = np.stack([np.stack([syy, -sxy], -1), np.stack([-sxy, sxx], -1)], -2) / det_[:, None, None]
+    cov_all = (infl * meas.s2[acc])[:, None, None] * ainv
+    on_all = meas.edge_frac[acc] > st.background_edge_min_fraction
+    for j, c in enumerate(accepted):
+        if det_[j] <= 0:
             out.append((c, np.full((2, 2), np.nan), False))
             continue
-        ainv = np.array([[syy, -sxy], [-sxy, sxx]]) / det_
-        cov = infl * meas.s2[c] * ainv
-        on_edge = bool(meas.edge_frac[c] > st.background_edge_min_fraction)
-        if on_edge and st.background_edge_clusters:
+        cov = cov_all[j]
+        on_edge = bool(on_all[j])
+        if on_edge and st.background_edge_clusters and meas.normals[c] is not None:
             # edge points on a background edge (band or step) err together: each run of them is
             # one cluster of a cluster-robust (sandwich) covariance, from their own residuals
-            runs = _runs(oe)
+            nx, ny, d, oe = meas.normals[c]
             m = np.zeros((2, 2))
-            for g in runs:
+            for g in _runs(oe):
                 sg = np.array([np.dot(nx[g], d[g]), np.dot(ny[g], d[g])])
                 m += np.outer(sg, sg)
-            cov = cov + st.background_edge_clusters * (ainv @ m @ ainv)
+            cov = cov + st.background_edge_clusters * (ainv[j] @ m @ ainv[j])
         if on_edge and st.background_edge_refit:
             cov = cov + np.outer(meas.edge_shift[c], meas.edge_shift[c])
         if on_edge and st.background_edge_sigma_px:
@@ -1387,17 +1522,11 @@ def _runs(flags):
         return [np.arange(n)]
     start = int(np.argmin(f))                 # rotate so the sequence starts on a False
     idx = np.roll(np.arange(n), -start)
-    ff = f[idx]
-    out, cur = [], []
-    for i, v in zip(idx, ff):
-        if v:
-            cur.append(i)
-        elif cur:
-            out.append(np.array(cur))
-            cur = []
-    if cur:
-        out.append(np.array(cur))
-    return out
+    ff = f[idx].astype(np.int8)
+    edges = np.diff(np.concatenate(([0], ff, [0])))
+    lo = np.nonzero(edges == 1)[0]
+    hi = np.nonzero(edges == -1)[0]
+    return [idx[a:b] for a, b in zip(lo, hi)]
 
 
 def _assemble(accepted, rej, n_fits, sdd_px, pp, shape, hot, message, meas=None, cand=None, model=None):
