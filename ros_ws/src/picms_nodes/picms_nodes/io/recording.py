@@ -21,6 +21,10 @@ IMAGE_RE = re.compile(r"^/picms/(camera_\d+)/image_raw$")
 INFO_RE = re.compile(r"^/picms/(camera_\d+)/camera_info$")
 SMR_PREFIX = "/picms/tracker/smr/"
 JOINTS = "/picms/stage/joint_states"
+# INTERFACES.md types: a topic carrying another type (or a schema without the type's fields) is
+# counted as undecodable by the reader, never handed on
+TYPES = {JOINTS: "sensor_msgs/msg/JointState", IMAGE_RE: "sensor_msgs/msg/Image",
+         INFO_RE: "sensor_msgs/msg/CameraInfo", re.compile("^" + re.escape(SMR_PREFIX) + ".+$"): "geometry_msgs/msg/PointStamped"}
 
 
 @dataclass
@@ -35,7 +39,7 @@ def read_recording(path, cell: dict) -> tuple[Recording, RecordingReport]:
     rep = RecordingReport()
     rec = Recording(cell=cell)
     js_t, js_q, infos = [], [], {}
-    for m in iter_recording(path, report=rep.read):
+    for m in iter_recording(path, report=rep.read, types=TYPES):
         t = m.topic
         try:
             if t == JOINTS:
@@ -61,7 +65,7 @@ def read_recording(path, cell: dict) -> tuple[Recording, RecordingReport]:
 
 def iter_frames(path, rep: RecordingReport):
     """Pass 2: (stamp_ns, camera, image) of every readable image; problems go to rep."""
-    for m in iter_recording(path, report=ReadReport()):
+    for m in iter_recording(path, report=ReadReport(), types=TYPES):
         mm = IMAGE_RE.match(m.topic)
         if not mm:
             continue
