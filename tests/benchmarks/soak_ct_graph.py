@@ -91,7 +91,7 @@ class Procs:
                 p.send_signal(signal.SIGINT)
         for p in self.p.values():
             try:
-                p.wait(30)
+                p.wait(90)          # a detector far behind finishes the frame in hand, then logs its counts
             except subprocess.TimeoutExpired:
                 os.killpg(p.pid, signal.SIGKILL)
                 p.wait(5)
