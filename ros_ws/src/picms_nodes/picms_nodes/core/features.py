@@ -99,6 +99,7 @@ class EdgeTarget:
     lighting: str               # bright_field | dark_field
     center: np.ndarray | None = None   # circle rims: nominal centre (3,)
     radius: float = 0.0                # circle rims: nominal radius (m); 0 = straight
+    band_m: float | None = None        # dark field: band width (m) when known (fixed in the fit)
 
 
 @dataclass
@@ -117,6 +118,7 @@ class StripFit:
     n_img: np.ndarray = field(default_factory=lambda: np.zeros(2))
     t_img: np.ndarray = field(default_factory=lambda: np.zeros(2))
     kappa: float = 0.0
+    px_per_m: float = 0.0
 
 
 def _img_dirs(view: View, P, d3, eps=2e-5):
@@ -128,9 +130,11 @@ def _img_dirs(view: View, P, d3, eps=2e-5):
     return uv[0], d / L, L / eps
 
 
-def fit_strip(img, view: View, target: EdgeTarget, P, *, search_px=10.0, half_len_px=5.0) -> StripFit:
-    """Sub-pixel edge across a strip centred on the image of P (3,), see module doc."""
-    p0, n_img, _ = _img_dirs(view, P, target.into_material)
+def fit_strip(img, view: View, target: EdgeTarget, P, *, search_px=10.0, half_len_px=5.0,
+              band_m=None) -> StripFit:
+    """Sub-pixel edge across a strip centred on the image of P (3,), see module doc.
+    band_m: dark-field band width (m), fixed in the fit when given (else fitted)."""
+    p0, n_img, px_per_m = _img_dirs(view, P, target.into_material)
     t_img = np.array([-n_img[1], n_img[0]])
     kappa = 0.0
     if target.radius > 0 and target.center is not None:
@@ -196,16 +200,22 @@ def fit_strip(img, view: View, target: EdgeTarget, P, *, search_px=10.0, half_le
         d = s - x[0] - x[1] * u + kappa * u * u / 2
         if bright:
             return x[4] + (x[3] - x[4]) * ndtr(d / x[2])
-        return x[3] + x[4] * (ndtr(d / x[2]) - ndtr((d - x[5]) / x[2]))
+        wb = x[5] if band_m is None else w_fix
+        return x[3] + x[4] * (ndtr(d / x[2]) - ndtr((d - wb) / x[2]))
 
     if bright:
         x0_ = np.array([s_c, 0.0, 1.5, lo, hi])
         lb = [s_c - 6, -0.5, 0.25, -50, -50]
         ub = [s_c + 6, 0.5, 10.0, 300, 300]
-    else:
+    elif band_m is None:
         x0_ = np.array([s_c, 0.0, 1.5, lo, hi - lo, 2.5])
         lb = [s_c - 6, -0.5, 0.25, -50, 0.0, 0.2]
         ub = [s_c + 6, 0.5, 10.0, 300, 400, 20.0]
+    else:
+        w_fix = band_m * px_per_m
+        x0_ = np.array([s_c, 0.0, 1.5, lo, hi - lo])
+        lb = [s_c - 6, -0.5, 0.25, -50, 0.0]
+        ub = [s_c + 6, 0.5, 10.0, 300, 1000]
     try:
         sol = least_squares(lambda x: model(x) - I, x0_, bounds=(lb, ub), x_scale="jac")
     except (ValueError, np.linalg.LinAlgError) as e:
@@ -220,9 +230,11 @@ def fit_strip(img, view: View, target: EdgeTarget, P, *, search_px=10.0, half_le
     contrast = abs(x[3] - x[4]) if bright else x[4]
     # a blurred curved edge's 50 % contour lies sigma^2 kappa / 2 toward its centre of curvature
     e = float(x[0]) + x[2] ** 2 * kappa / 2
-    return StripFit(True, "", e, float(np.sqrt(max(cov[0, 0], 0))), float(x[1]), float(x[2]),
-                    float(x[5]) if not bright else 0.0, math.sqrt(s2), float(contrast), len(I),
+    fit = StripFit(True, "", e, float(np.sqrt(max(cov[0, 0], 0))), float(x[1]), float(x[2]),
+                    0.0 if bright else (float(x[5]) if band_m is None else w_fix), math.sqrt(s2), float(contrast), len(I),
                     p0, n_img, t_img, kappa)
+    fit.px_per_m = px_per_m
+    return fit
 
 
 @dataclass
@@ -233,6 +245,7 @@ class EdgePoint:
     strips: dict                # camera -> StripFit (last pass)
     cameras_used: list
     problems: list
+    band_m: float | None = None
 
 
 def _edge_plane(view: View, fit: StripFit):
@@ -256,13 +269,17 @@ def locate_edge_point(images: dict, views: dict, target: EdgeTarget, *, passes=2
     N /= np.linalg.norm(N)
     B = np.column_stack([m, N])
     problems: list = []
+    band_m = target.band_m
+    dark = target.lighting == "dark_field"
+    if dark and band_m is None:
+        passes = max(passes, 2)
     for k in range(passes):
         fits, rows, rhs, wts = {}, [], [], []
         for name, view in views.items():
             if name not in images:
                 continue
             fit = fit_strip(images[name], view, target, P, search_px=search_px if k == 0 else 4.0,
-                            half_len_px=half_len_px)
+                            half_len_px=half_len_px, band_m=band_m)
             if not fit.ok:
                 problems.append(fit.reason)
                 continue
@@ -280,9 +297,38 @@ def locate_edge_point(images: dict, views: dict, target: EdgeTarget, *, passes=2
         ab, *_ = np.linalg.lstsq(A, y, rcond=None)
         covab = np.linalg.inv(A.T @ A)
         P = P + B @ ab
+        if dark and band_m is None:
+            # band width (m) from this pass's free fits, weighted by their edge uncertainty; the
+            # next pass fixes it (a free width is ill-conditioned when the blur exceeds it)
+            w = [(f.width_px / f.px_per_m, 1.0 / max(f.u_e_px, 0.02) ** 2) for f in fits.values() if f.u_e_px < 1.0]
+            if w:
+                band_m = float(np.average([a for a, _ in w], weights=[b for _, b in w]))
     cov = B @ covab @ B.T
     pixels = {name: tuple(project(v.pose, v.intr, P)[0]) for name, v in views.items() if name in fits}
-    return EdgePoint(P, cov, pixels, fits, sorted(fits), problems)
+    return EdgePoint(P, cov, pixels, fits, sorted(fits), problems, band_m)
+
+
+def estimate_band_width(images: dict, views: dict, targets: list) -> tuple[float, float, int]:
+    """Dark field: the edge band's width (m) from free fits on every target's strip in every
+    view (weighted by 1 / u_e^2, ill-conditioned fits left out): (width, standard error, n).
+    One feature's targets share one band (a chamfer); the edge fits then fix it."""
+    vals, wts = [], []
+    for t in targets:
+        for name, view in views.items():
+            if name in images:
+                f = fit_strip(images[name], view, t, np.asarray(t.point, float))
+                if f.ok and f.u_e_px < 0.5 and f.width_px > 0.3:
+                    vals.append(f.width_px / f.px_per_m)
+                    wts.append(1.0 / max(f.u_e_px, 0.02) ** 2)
+    if len(vals) < 3:
+        raise LocateError(f"dark-field band width: only {len(vals)} well-conditioned edge fits")
+    v, w = np.array(vals), np.array(wts)
+    med = float(np.median(v))
+    keep = np.abs(v - med) < 4 * 1.4826 * np.median(np.abs(v - med)) + 1e-7
+    v, w = v[keep], w[keep]
+    mean = float(np.average(v, weights=w))
+    se = float(np.sqrt(np.average((v - mean) ** 2, weights=w) / max(len(v) - 1, 1)))
+    return mean, se, int(len(v))
 
 
 # ----------------------------------------------------------------------------------------
@@ -475,6 +521,21 @@ def find_part(images: dict, views: dict, program, origin_stage, *, res=80e-6, fi
             if s > best[0]:
                 best = (s, float(a), float(np.median([x[0] for x in sc])), float(np.median([x[1] for x in sc])))
     res = schedule[-1][0]
+    # a layout symmetric under a rotation (the flange: 180 deg) cannot be told apart in the
+    # images: take the equivalent rotation nearest the placement's (or 0), so ids are stable
+    base = _layout_edges(feats, 4 * schedule[0][0], half_t, 0.0, 1.0)
+    ctr = ((base.shape[1] - 1) / 2, (base.shape[0] - 1) / 2)
+    ref = 0.0 if known is None else known
+    sym = [0.0]
+    for n in (2, 3, 4, 6):
+        a = 2 * math.pi / n
+        rot = cv2.warpAffine(base, cv2.getRotationMatrix2D(ctr, -math.degrees(a), 1.0), base.shape[::-1])
+        if float(np.sum(rot * base) / np.sqrt(np.sum(rot * rot) * np.sum(base * base))) > 0.97:
+            sym += [k * a for k in range(1, n)]
+    if len(sym) > 1:
+        cands = [best[1] + a for a in sym]
+        pick = min(cands, key=lambda a: abs(math.remainder(a - ref, 2 * math.pi)))
+        best = (best[0], pick, best[2], best[3])
     score, ang, dx, dy = best
     if score < 0.2:
         raise LocateError(f"part finding: the nominal layout does not match the images (score {score:.2f})")
