@@ -139,13 +139,16 @@ def fit_strip(img, view: View, target: EdgeTarget, P, *, search_px=10.0, half_le
     kappa = 0.0
     if target.radius > 0 and target.center is not None:
         # curvature of the projected rim at P, in (u, s): fit s = -kappa u^2 / 2 to rim images
-        r_hat = (P - target.center) / max(np.linalg.norm(P - target.center), 1e-12)
-        t_hat = target.tangent
-        da = np.array([-2.0, -1.0, 1.0, 2.0]) * (4.0 / (target.radius * _img_dirs(view, P, t_hat)[2] + 1e-9))
-        rim = target.center + target.radius * (np.cos(da)[:, None] * r_hat + np.sin(da)[:, None] * t_hat)
+        rad = float(np.linalg.norm(P - target.center))            # the rim through P itself
+        r_hat = (P - target.center) / max(rad, 1e-12)
+        t_hat = target.tangent - (target.tangent @ r_hat) * r_hat
+        t_hat /= np.linalg.norm(t_hat)
+        da = np.array([-2.0, -1.0, 0.0, 1.0, 2.0]) * (4.0 / (rad * _img_dirs(view, P, t_hat)[2] + 1e-9))
+        rim = target.center + rad * (np.cos(da)[:, None] * r_hat + np.sin(da)[:, None] * t_hat)
         uv = project(view.pose, view.intr, rim) - p0
         uu, ss = uv @ t_img, uv @ n_img
-        kappa = float(-2 * np.sum(ss * uu ** 2) / max(np.sum(uu ** 4), 1e-12))
+        coef = np.polyfit(uu, ss, 2)                                # s = c2 u^2 + c1 u + c0
+        kappa = float(-2 * coef[0])
     h, w = img.shape
     R = search_px + half_len_px + 2
     x0, x1 = int(max(math.floor(p0[0] - R), 0)), int(min(math.ceil(p0[0] + R) + 1, w))

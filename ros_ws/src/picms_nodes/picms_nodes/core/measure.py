@@ -171,6 +171,9 @@ def measure(cell, probe, program: PartProgram, *, progress=None, max_iter=4, kee
     bands, problems = {}, []
     if program.lighting == "dark_field":
         for f in program.features:
+            if f.band_m is not None:
+                bands[f.id] = (f.band_m, 0.0, 0)
+                continue
             tg = [_target_for(pt, f, R, p, program.lighting) for pt in plan if pt.feature_id == f.id and pt.kind == "edge"]
             if tg:
                 try:
@@ -323,7 +326,7 @@ def point_from_record(d: dict) -> MeasuredPoint:
                          list(d.get("offsets_um", [])), {}, d.get("target") or {})
 
 
-def measurement_document(run: MeasurementRun, probe, *, mode="stage") -> dict:
+def measurement_document(run: MeasurementRun, probe, *, mode="stage", calibration: dict | None = None) -> dict:
     """The full measurement.json: the fit in `mode` and, as extras, the other mode's fit, the raw
     points, the part finding, timing (see doc/picms_measure.md)."""
     doc = fit_measurement(run.program, run.points, mode=mode, R_tracker_stage=probe.R_tracker_stage,
@@ -347,7 +350,12 @@ def measurement_document(run: MeasurementRun, probe, *, mode="stage") -> dict:
                     "elapsed_s": run.elapsed_s},
         "problems": run.problems,
         "program": run.program.source,
+        "program_yaml": run.program.raw,
     })
+    if calibration is not None:
+        doc["probe"] = {"calibration": calibration, "camera_info": {
+            c: {"K": np.asarray(i.K).tolist(), "D": np.asarray(i.D).tolist(), "width": i.width, "height": i.height}
+            for c, i in probe.intrinsics.items()}}
     return doc
 
 

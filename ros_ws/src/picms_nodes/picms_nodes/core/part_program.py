@@ -8,6 +8,10 @@ doc/picms_measure.md):
   face). The dark-field edge band lies on the material side; the true edge is the band's
   boundary away from the material, so the locator must know which side that is.
 - per circle / square / rectangle `rotation` (rad, default 0), as for dot grids.
+- `edge_band_m` (top level or per feature, dark field only): the width of the bright edge band
+  (the edge break / chamfer, a drawing value). When given, the edge fits fix it; when absent it
+  is estimated from free fits of the band (doc/picms_measure.md: with the blur close to the
+  band's width that estimate scatters by +-10 um, i.e. +-5 um on each edge).
 
 Planned points (`plan`): `points_per_side` points on every edge of a square / rectangle
 (spread over the middle 70 % of the side, away from the corners), `points` points on a
@@ -45,6 +49,7 @@ class FeatureSpec:
     pitch: float = 0.0
     dot_diameter: float = 0.0
     material: str = "inside"                # which side of the edge is material (chrome / face)
+    band_m: float | None = None             # dark field: edge band width (m) when given
 
     @property
     def half_sizes(self) -> tuple:
@@ -81,6 +86,7 @@ class PartProgram:
     rotation_about_normal: float | None     # rad, None: unknown (found from the images)
     features: tuple                         # FeatureSpec, in program order
     source: str = ""
+    raw: dict = field(default_factory=dict, repr=False)   # the parsed YAML (kept with measurements)
 
     def feature(self, fid: str) -> FeatureSpec:
         for f in self.features:
@@ -120,7 +126,7 @@ def _vec(v, n, where):
     return tuple(_num(x, f"{where}[{i}]") for i, x in enumerate(v))
 
 
-def _feature(d, k, lighting) -> FeatureSpec:
+def _feature(d, k, lighting, band_default=None) -> FeatureSpec:
     where = f"features[{k}]"
     if not isinstance(d, dict):
         raise PartProgramError(f"{where}: expected a mapping, got {d!r}")
@@ -150,6 +156,10 @@ def _feature(d, k, lighting) -> FeatureSpec:
             raise PartProgramError(f"{where}.material: 'inside' or 'outside', got {material!r}")
         kw["material"] = material
         allowed.add("material")
+        if lighting == "dark_field":
+            b = d.get("edge_band_m", band_default)
+            kw["band_m"] = None if b is None else _num(b, f"{where}.edge_band_m", positive=True)
+            allowed.add("edge_band_m")
     if typ == "square":
         if "side" not in d:
             raise PartProgramError(f"{where}: missing 'side'")
@@ -232,16 +242,19 @@ def load(source) -> PartProgram:
     feats = d.get("features")
     if not isinstance(feats, list) or not feats:
         raise PartProgramError("features: missing or empty list")
+    band = d.get("edge_band_m")
+    if band is not None:
+        band = _num(band, "edge_band_m", positive=True)
     out, seen = [], set()
     for k, fd in enumerate(feats):
-        f = _feature(fd, k, lighting)
+        f = _feature(fd, k, lighting, band)
         if f.id in seen:
             raise PartProgramError(f"feature {f.id!r}: duplicate id")
         seen.add(f.id)
         out.append(f)
     if all(f.type == "plane" for f in out):
         raise PartProgramError("features: only planes; a plane is fitted from the points of other features")
-    return PartProgram(part, lighting, origin, tol, rot, tuple(out), name)
+    return PartProgram(part, lighting, origin, tol, rot, tuple(out), name, d)
 
 
 def plan(prog: PartProgram) -> list[PlannedPoint]:
