@@ -52,7 +52,7 @@ fi
 
 # -- 2/3. build the workspace ---------------------------------------------------------------------
 src_files=$(cd "$ROOT/ros_ws/src" && find . \( -name package.xml -o -name CMakeLists.txt -o -name setup.py \
-  -o -name setup.cfg -o -name '*.msg' -o -name '*.srv' -o -path '*/resource/*' -o -path '*/config/*' \) -type f | LC_ALL=C sort)
+  -o -name setup.cfg -o -name '*.msg' -o -name '*.srv' -o -name '*.action' -o -path '*/resource/*' -o -path '*/config/*' \) -type f | LC_ALL=C sort)
 build_hash=$( (echo "$req_hash"; cd "$ROOT/ros_ws/src" && echo "$src_files" && cat $src_files) | sha256sum | cut -c1-16)
 if [ "$(cat "$ROOT/ros_ws/install/.build-hash" 2>/dev/null)" != "$build_hash" ]; then
   log "building ros_ws with colcon (metro_msgs takes ~20 s)"

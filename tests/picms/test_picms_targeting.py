@@ -58,6 +58,12 @@ def test_triangulation_accuracy_and_covariance(seed):
         z.append(np.linalg.solve(np.linalg.cholesky(tri.cov), e))
         dlt_err.append(np.linalg.norm(tri.dlt_point_body - probe._xstar_body - P))
         assert tri.rms_px < 5 * sig
+    # the vectorised form gives the same points
+    Ps = rng.uniform(-1e-3, 1e-3, (20, 3))
+    pxs = {c.name: camera.project(c.pose, c.true_intrinsics, Ps) + rng.normal(0, sig, (20, 2)) for c in truth.cameras}
+    many = targeting.triangulate_many(probe, pxs, sig)[0]
+    one = [targeting.triangulate(probe, {c: (*pxs[c][i], sig) for c in pxs}).offset_stage for i in range(20)]
+    assert np.allclose(many, one, atol=1e-10)
     z = np.array(z)
     # whitened errors: unit variance per component (150 x 3 samples: sd within ~15 %)
     assert 0.8 < z.std() < 1.2, z.std(0)
@@ -191,3 +197,23 @@ def test_circle_centre_perspective_shift():
             assert lo <= np.linalg.norm(b) <= hi
             assert np.linalg.norm(b - ref) < 0.02 * max(np.linalg.norm(ref), 1e-3)
 
+
+
+def test_feature_mode_dark_field_hole(sessions):
+    """A 2 mm pin hole of the flange in dark field (dark hole inside a bright edge band on a
+    dark face), tilted plate: X* on the hole's centre within the stated uncertainty."""
+    probe, truth = probe_of(sessions[0])
+    part = scenes.flange_face((2e-4, -1e-4, 1e-4), (0.003, -0.002), 0.2)
+    pt = scenes.part_truth(part)
+    f = [f for f in pt["features"] if f["id"] == "pin_1"][0]
+    P = f["center_stage"]
+    sc = cellio.SimCell(truth, np.random.default_rng(13), part, window_px=100)
+    s0 = sc.move_and_settle(probe.move_for(P + [2e-4, -1.5e-4, 0.0]))
+    r_px = f["diameter"] / 2 / probe.mm_per_px("camera_1")
+    loc = targeting.circle_feature_locator(roi_at(truth, s0.q, P, r_px + 20), f["diameter"],
+                                           plane_normal_stage=pt["normal_stage"])
+    r = targeting.drive_to(sc, probe, loc, start=s0)
+    assert r.ok, r.reason
+    e = r.p_stage - P
+    assert np.all(np.abs(e) < 4 * np.sqrt(np.diag(r.cov_stage)) + 0.3e-6), (e, np.diag(r.cov_stage))
+    assert np.linalg.norm(e) < 2e-6

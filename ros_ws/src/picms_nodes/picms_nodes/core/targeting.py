@@ -280,6 +280,60 @@ def triangulate(probe: Probe, pixels: dict, q=None, *, refine: bool = True) -> T
                          q=None if q is None else np.asarray(q, float))
 
 
+def triangulate_many(probe: Probe, pixels: dict, sigma_px: float | dict = 0.1, *, refine: bool = True):
+    """Vectorised triangulate for many points: pixels {camera: (N, 2)} raw pixels of the same N
+    points in every camera given (>= 2). Same method (pixel-weighted N-view DLT by batched SVD,
+    then Gauss-Newton); returns (offset_stage (N, 3), cov (N, 3, 3), reproj_px {camera: (N, 2)})."""
+    cams = list(pixels)
+    if len(cams) < 2:
+        raise TargetingError(f"triangulation needs at least two cameras, got {cams}")
+    px = {c: np.asarray(pixels[c], float).reshape(-1, 2) for c in cams}
+    N = px[cams[0]].shape[0]
+    if any(v.shape[0] != N for v in px.values()) or not all(np.all(np.isfinite(v)) for v in px.values()):
+        raise TargetingError("triangulate_many: every camera needs the same number of finite pixels")
+    sig = {c: float(sigma_px[c] if isinstance(sigma_px, dict) else sigma_px) for c in cams}
+    n, Wn = {}, {}
+    h = 1e-7
+    for c in cams:
+        intr = probe.intrinsics[c]
+        n[c] = intr.undistort(px[c])
+        J = np.stack([(intr.distort(n[c] + [h, 0]) - intr.distort(n[c] - [h, 0])) / (2 * h),
+                      (intr.distort(n[c] + [0, h]) - intr.distort(n[c] - [0, h])) / (2 * h)], axis=2)  # (N, 2, 2)
+        Wn[c] = np.einsum("nki,nkj->nij", J, J) / sig[c] ** 2          # J^T Sigma^-1 J, Sigma = sig^2 I
+    rows = []
+    for c in cams:
+        R, C = probe.R_stage_camera[c], probe.p_stage_centre[c]
+        P = np.hstack([R.T, (-R.T @ C).reshape(3, 1)])
+        w = np.sqrt(np.trace(Wn[c], axis1=1, axis2=2) / 2)[:, None]
+        rows.append(w * (n[c][:, :1] * P[2] - P[0]))
+        rows.append(w * (n[c][:, 1:] * P[2] - P[1]))
+    M = np.stack(rows, axis=1)                                            # (N, 2J, 4)
+    Vt = np.linalg.svd(M)[2]
+    X = Vt[:, -1, :3] / Vt[:, -1, 3:4]
+    for _ in range(6 if refine else 1):
+        H = np.zeros((N, 3, 3))
+        g = np.zeros((N, 3))
+        for c in cams:
+            Rt = probe.R_stage_camera[c].T
+            pc = (X - probe.p_stage_centre[c]) @ Rt.T
+            m = pc[:, :2] / pc[:, 2:3]
+            A = np.zeros((N, 2, 3))
+            A[:, 0, 0] = A[:, 1, 1] = 1.0
+            A[:, :, 2] = -m
+            J = (A / pc[:, 2, None, None]) @ Rt                           # (N, 2, 3)
+            JW = np.einsum("nki,nkj->nij", J, Wn[c])                      # J^T W
+            H += JW @ J
+            g += np.einsum("nij,nj->ni", JW, n[c] - m)
+        if not refine:
+            break
+        X = X + np.linalg.solve(H, g[..., None])[..., 0]
+    res = {}
+    for c in cams:
+        pc = (X - probe.p_stage_centre[c]) @ probe.R_stage_camera[c]
+        res[c] = probe.intrinsics[c].distort(pc[:, :2] / pc[:, 2:3]) - px[c]
+    return X - probe._xstar_body, np.linalg.inv(H) + probe._xstar_cov, res
+
+
 # ---------------------------------------------------------------- points in stage / tracker frame
 def point_in_tracker(probe: Probe, settled: Settled, offset_stage, cov_offset):
     """(p_tracker (3,), cov (3, 3)) of X*(q) + offset via the settled constellation readings,
@@ -688,5 +742,5 @@ def circle_feature_locator(roi: dict | None, expected_diameter_m: float, *, plan
 
 
 __all__ = ["Probe", "Triangulation", "TargetResult", "TargetingError", "Locator", "triangulate", "drive_to",
-           "direct_locator", "circle_feature_locator", "point_in_tracker", "find_disc",
+           "direct_locator", "circle_feature_locator", "triangulate_many", "point_in_tracker", "find_disc",
            "projected_circle_centre_bias", "circle_edge_points"]
