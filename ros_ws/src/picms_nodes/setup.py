@@ -28,5 +28,6 @@ setup(
         "picms_measure_offline = picms_nodes.measure_offline:main",
         "picms_measure_demo = picms_nodes.measure_demo:main",
         "picms_targeting = picms_nodes.nodes.picms_targeting:main",
+        "picms_measurement = picms_nodes.nodes.picms_measurement:main",
     ]},
 )
