@@ -17,14 +17,14 @@ def _um(x):
     return f"{x * 1e6:.2f}"
 
 
-def _mm(x, nd=4):
+def _mm(x, nd=5):
     return f"{x * 1e3:.{nd}f}"
 
 
 def dimension_table(doc: dict) -> list[dict]:
     """Dimensions (Table 1 style): every feature's size(s), the centre distance of every pair of
-    same-type same-size features, and the circle through >= 3 same-size circle centres (bolt
-    circle). Each row: name, value (m), u (m) when known, kind, members."""
+    features (a dot grid's centre: the mean of its dots), and the circle through >= 3 same-size
+    circle centres (bolt circle). Each row: name, value (m), u (m) when known, kind, members."""
     rows = []
     feats = [f for f in doc["features"] if "error" not in f]
     for f in feats:
@@ -38,6 +38,11 @@ def dimension_table(doc: dict) -> list[dict]:
         else:
             rows.append({"name": f"{f['id']} diameter", "value": f["size"], "u": f["u_size"], "kind": "size",
                          "members": [f["id"]]})
+    for a, b in itertools.combinations(feats + [dict(g, type="dot_grid", center_part=np.mean(g["centres_part"], 0))
+                                                for g in doc.get("dot_grids", [])], 2):
+        d = float(np.hypot(*(np.asarray(a["center_part"]) - np.asarray(b["center_part"]))))
+        rows.append({"name": f"{a['id']}-{b['id']} centre distance", "value": d, "u": None, "kind": "distance",
+                     "members": [a["id"], b["id"]]})
     groups = {}
     for f in feats:
         key = (f["type"], json_key(f.get("nominal")))
@@ -45,10 +50,6 @@ def dimension_table(doc: dict) -> list[dict]:
     for (typ, _), fs in groups.items():
         if len(fs) < 2:
             continue
-        for a, b in itertools.combinations(fs, 2):
-            d = float(np.hypot(*(np.asarray(a["center_part"]) - np.asarray(b["center_part"]))))
-            rows.append({"name": f"{a['id']}-{b['id']} centre distance", "value": d, "u": None, "kind": "distance",
-                         "members": [a["id"], b["id"]]})
         if typ == "circle" and len(fs) >= 3:
             c = np.array([f["center_part"] for f in fs])
             A = np.column_stack([2 * c, np.ones(len(c))])
