@@ -501,28 +501,49 @@ def find_part(images: dict, views: dict, program, origin_stage, *, res=80e-6, fi
                     (res, np.deg2rad(np.linspace(-1, 1, 9)))]
     else:
         schedule = [(res, known + np.deg2rad(np.linspace(-3, 3, 7))), (res, np.deg2rad(np.linspace(-1, 1, 9)))]
-    best = None
-    for k, (r, angles) in enumerate(schedule):
-        if k > 0:
-            angles = best[1] + angles
-        maps = {}
-        for name, v in views.items():
-            if name in images:
-                m, valid = _rectify(images[name], v, o, r, half_i)
-                if valid.mean() > 0.95:
-                    maps[name] = _edges(m, 1.0)
-        if not maps:
-            raise LocateError("part finding: the part area is not fully in view of any camera")
-        base = _layout_edges(feats, r, half_t, 0.0, 1.0)
+    maps_at, base_at = {}, {}
+
+    def score_angles(r, angles):
+        if r not in maps_at:
+            mp = {}
+            for name, v in views.items():
+                if name in images:
+                    m, valid = _rectify(images[name], v, o, r, half_i)
+                    if valid.mean() > 0.95:
+                        mp[name] = _edges(m, 1.0)
+            if not mp:
+                raise LocateError("part finding: the part area is not fully in view of any camera")
+            maps_at[r] = mp
+            base_at[r] = _layout_edges(feats, r, half_t, 0.0, 1.0)
+        base = base_at[r]
         ctr = ((base.shape[1] - 1) / 2, (base.shape[0] - 1) / 2)
-        best = (-2.0, 0.0, 0.0, 0.0)
+        out = []
         for a in angles:
-            M = cv2.getRotationMatrix2D(ctr, -math.degrees(a), 1.0)   # +a: counter-clockwise in (x, y up... rows = +y)
+            M = cv2.getRotationMatrix2D(ctr, -math.degrees(a), 1.0)   # rows are +y: negative angle
             tpl = cv2.warpAffine(base, M, (base.shape[1], base.shape[0]), flags=cv2.INTER_LINEAR)
-            sc = [_ncc_peak(e, tpl) for e in maps.values()]
-            s = float(np.mean([x[2] for x in sc]))
-            if s > best[0]:
-                best = (s, float(a), float(np.median([x[0] for x in sc])), float(np.median([x[1] for x in sc])))
+            sc = [_ncc_peak(e, tpl) for e in maps_at[r].values()]
+            out.append((float(np.mean([x[2] for x in sc])), float(a), float(np.median([x[0] for x in sc])),
+                        float(np.median([x[1] for x in sc]))))
+        return out
+
+    # coarse pass; the three best separated local maxima are refined (a partial program of a
+    # plate can look alike at more than one rotation at the coarse scale)
+    r0, a0 = schedule[0]
+    coarse = score_angles(r0, a0)
+    order = sorted(range(len(coarse)), key=lambda i: -coarse[i][0])
+    seeds = []
+    for i in order:
+        if all(abs(math.remainder(coarse[i][1] - coarse[j][1], 2 * math.pi)) > math.radians(10) for j in seeds):
+            seeds.append(i)
+        if len(seeds) == (3 if len(a0) > 10 else 1):
+            break
+    best = (-2.0, 0.0, 0.0, 0.0)
+    for i in seeds:
+        cand = coarse[i]
+        for r, angles in schedule[1:]:
+            cand = max(score_angles(r, cand[1] + angles))
+        if cand[0] > best[0]:
+            best = cand
     res = schedule[-1][0]
     # a layout symmetric under a rotation (the flange: 180 deg) cannot be told apart in the
     # images: take the equivalent rotation nearest the placement's (or 0), so ids are stable
