@@ -497,8 +497,8 @@ def find_part(images: dict, views: dict, program, origin_stage, *, res=80e-6, fi
     o = np.asarray(origin_stage, float)
     known = program.rotation_about_normal
     if known is None:
-        schedule = [(4 * res, np.deg2rad(np.arange(0.0, 360.0, 4.0))), (res, np.deg2rad(np.linspace(-4, 4, 9))),
-                    (res, np.deg2rad(np.linspace(-1, 1, 9)))]
+        schedule = [(4 * res, np.deg2rad(np.arange(0.0, 360.0, 3.0))), (res, np.deg2rad(np.linspace(-3, 3, 7))),
+                    (res, np.deg2rad(np.linspace(-0.75, 0.75, 7)))]
     else:
         schedule = [(res, known + np.deg2rad(np.linspace(-3, 3, 7))), (res, np.deg2rad(np.linspace(-1, 1, 9)))]
     maps_at, base_at = {}, {}
@@ -510,11 +510,11 @@ def find_part(images: dict, views: dict, program, origin_stage, *, res=80e-6, fi
                 if name in images:
                     m, valid = _rectify(images[name], v, o, r, half_i)
                     if valid.mean() > 0.95:
-                        mp[name] = _edges(m, 1.0)
+                        mp[name] = _edges(m, 2.0 if r > res else 1.0)
             if not mp:
                 raise LocateError("part finding: the part area is not fully in view of any camera")
             maps_at[r] = mp
-            base_at[r] = _layout_edges(feats, r, half_t, 0.0, 1.0)
+            base_at[r] = _layout_edges(feats, r, half_t, 0.0, 2.0 if r > res else 1.0)
         base = base_at[r]
         ctr = ((base.shape[1] - 1) / 2, (base.shape[0] - 1) / 2)
         out = []
@@ -535,7 +535,7 @@ def find_part(images: dict, views: dict, program, origin_stage, *, res=80e-6, fi
     for i in order:
         if all(abs(math.remainder(coarse[i][1] - coarse[j][1], 2 * math.pi)) > math.radians(10) for j in seeds):
             seeds.append(i)
-        if len(seeds) == (3 if len(a0) > 10 else 1):
+        if len(seeds) == (5 if len(a0) > 10 else 1):
             break
     best = (-2.0, 0.0, 0.0, 0.0)
     for i in seeds:
@@ -547,7 +547,7 @@ def find_part(images: dict, views: dict, program, origin_stage, *, res=80e-6, fi
     res = schedule[-1][0]
     # a layout symmetric under a rotation (the flange: 180 deg) cannot be told apart in the
     # images: take the equivalent rotation nearest the placement's (or 0), so ids are stable
-    base = _layout_edges(feats, 4 * schedule[0][0], half_t, 0.0, 1.0)
+    base = _layout_edges(feats, schedule[-1][0], half_t, 0.0, 1.0)
     ctr = ((base.shape[1] - 1) / 2, (base.shape[0] - 1) / 2)
     ref = 0.0 if known is None else known
     sym = [0.0]
@@ -594,14 +594,22 @@ def find_part(images: dict, views: dict, program, origin_stage, *, res=80e-6, fi
             heights[f.id] = float(sol[2])
     # pose: plane through the feature centres (>= 3) and 2-D Procrustes in it
     ids = list(centres)
+    # a dot grid repeats: its local match can be off by a pitch in one view (a wrong height);
+    # leave grids out of the pose when two other features were placed
+    solid = [i for i in ids if feats_by_id(feats)[i].type != "dot_grid"]
+    if len(solid) >= 2:
+        ids = solid
     nominal = np.array([feats_by_id(feats)[i].center for i in ids]) if ids else np.zeros((0, 2))
     meas = np.array([centres[i] for i in ids]) if ids else np.zeros((0, 3))
     normal = np.array([0.0, 0.0, 1.0])
-    if len(ids) >= 3:
+    if len(ids) >= 2:
+        # heights z = a x + b y + c; minimum-norm tilt when the centres are (nearly) collinear
+        # (only the tilt along their line is then known)
         cm = meas.mean(0)
-        _, sv, vt = np.linalg.svd(meas - cm)
-        if sv[1] > 1e-3 * max(sv[0], 1e-12) and sv[1] > 1e-4:
-            normal = vt[2] if vt[2][2] > 0 else -vt[2]
+        A = np.column_stack([(meas[:, :2] - cm[:2]) / 0.01, np.ones(len(ids))])
+        sol, *_ = np.linalg.lstsq(A, meas[:, 2] - cm[2], rcond=0.15)
+        normal = np.array([-sol[0] / 0.01, -sol[1] / 0.01, 1.0])
+        normal /= np.linalg.norm(normal)
     if len(ids) >= 2:
         a = nominal - nominal.mean(0)
         e1 = np.array([1.0, 0.0, 0.0]) - normal[0] * normal
