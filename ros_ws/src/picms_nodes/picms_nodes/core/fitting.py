@@ -11,7 +11,7 @@ Rotations: `fixed_angles(R)` gives [tx, ty, tz] with R = Rz(tz) Ry(ty) Rx(tx) (I
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import least_squares
