@@ -514,6 +514,7 @@ def direct_locator(pixels_in_two_or_more: dict, *, max_reproj_px: float = 2.0, s
                 m = _match(img, tm[0], p, search_px)
                 if m is not None:
                     p = m + tm[1]
+                    state["matched"] = state.get("matched", 0) + 1
             out[c] = p
         return out
     locate.state = state
