@@ -97,58 +97,75 @@ def _regions(truth, detector, ring=RING_PX):
     return lab
 
 
-def _residual_ss(des):
-    ss = 0.0
-    for y, nuis, *_ in des:
-        beta = np.linalg.lstsq(nuis, y, rcond=None)[0]
-        ss += float(np.sum((y - nuis @ beta) ** 2))
-    return ss
+def _region_solve(rid, n_reg, x, ys, wgt=None):
+    """Per-region least squares of each column of ys (n, m) on the region's columns x (n, p), vectorised
+    (normal equations from bincounts). Returns the residuals (n, m), weighted by ``wgt`` when given."""
+    if wgt is not None:
+        x = x * wgt[:, None]
+        ys = ys * wgt[:, None]
+    p, m = x.shape[1], ys.shape[1]
+    a = np.empty((n_reg, p, p))
+    for i in range(p):
+        for j in range(i, p):
+            a[:, i, j] = a[:, j, i] = np.bincount(rid, x[:, i] * x[:, j], n_reg)
+    b = np.empty((n_reg, p, m))
+    for i in range(p):
+        for k in range(m):
+            b[:, i, k] = np.bincount(rid, x[:, i] * ys[:, k], n_reg)
+    a += np.eye(p)[None] * 1e-12 * np.trace(a, axis1=1, axis2=2)[:, None, None]
+    beta = np.linalg.solve(a, b)                     # (n_reg, p, m)
+    return ys - np.einsum("np,npm->nm", x, beta[rid]), beta
 
 
 class _Frames:
-    """Model images and regions of the analysed frames; designs at a blur sigma."""
+    """Model images and the pixels of the shadow regions of the analysed frames (one long vector)."""
 
     def __init__(self, obs, t0, tprev, labels):
-        self.obs, self.t0, self.tprev, self.labels = obs, t0, tprev, labels
-        self.idx = []
+        self.t0, self.tprev = t0, tprev
+        rows, cols = labels[0].shape
+        self.shape = (rows, cols)
+        fj, pix, rid = [], [], []
+        n_reg = 0
         for j, lab in enumerate(labels):
             flat = lab.ravel()
-            order = np.argsort(flat, kind="stable")
-            bounds = np.searchsorted(flat[order], np.arange(1, flat.max() + 2))
-            for k in range(len(bounds) - 1):
-                pix = order[bounds[k]:bounds[k + 1]]
-                if pix.size >= 30:
-                    self.idx.append((j, pix))
-        rows, cols = labels[0].shape
-        rr, cc = np.divmod(np.arange(rows * cols), cols)
-        self.rr, self.cc = rr, cc
-        self.glare = [_blur(t, HALO_SIGMA_PX).ravel() for t in t0]
+            sel = np.flatnonzero(flat)
+            ids, inv, cnt = np.unique(flat[sel], return_inverse=True, return_counts=True)
+            ok = cnt[inv] >= 30
+            sel, inv = sel[ok], inv[ok]
+            _, inv = np.unique(inv, return_inverse=True)
+            fj.append(np.full(sel.size, j))
+            pix.append(sel)
+            rid.append(inv + n_reg)
+            n_reg += int(inv.max()) + 1 if inv.size else 0
+        self.fj, self.pix, self.rid = np.concatenate(fj), np.concatenate(pix), np.concatenate(rid)
+        self.n_reg = n_reg
+        self.y = np.concatenate([o.ravel()[p] for o, p in zip(obs, pix)]).astype(float)
+        rr, cc = np.divmod(self.pix, cols)
+        cnt = np.bincount(self.rid, None, n_reg)
+        mc = np.bincount(self.rid, cc, n_reg) / cnt
+        mr = np.bincount(self.rid, rr, n_reg) / cnt
+        self.xn = (cc - mc[self.rid]) / 10.0
+        self.yn = (rr - mr[self.rid]) / 10.0
+        self.glare = self._gather([_blur(t, HALO_SIGMA_PX) for t in t0])
         tc = [np.clip(t, 1e-6, 1.0) for t in t0]
         self.tlnt = [t * np.log(t) for t in tc]
 
-    def design(self, sigma, with_terms=False):
-        bt = [_blur(t, sigma).ravel() for t in self.t0]
-        btl = [_blur(t, sigma).ravel() for t in self.tlnt]
-        bp = [_blur(t, sigma).ravel() for t in self.tprev] if with_terms else None
-        if with_terms:           # d B / d sigma: the blur's remaining error is a nuisance to first order
-            dlt = 0.02
-            dbs = [((_blur(t, sigma + dlt) - _blur(t, max(sigma - dlt, 1e-3))) / (2 * dlt)).ravel() for t in self.t0]
-        out = []
-        for j, pix in self.idx:
-            y = self.obs[j].ravel()[pix].astype(float)
-            cc, rr = self.cc[pix], self.rr[pix]
-            xn = (cc - cc.mean()) / max(cc.std(), 1.0)
-            yn = (rr - rr.mean()) / max(rr.std(), 1.0)
-            b = bt[j][pix].astype(float)
-            nuis = np.stack([np.ones_like(y), xn, yn, b - 1.0, btl[j][pix].astype(float)], axis=1)
-            if with_terms:
-                nuis = np.hstack([nuis, dbs[j][pix].astype(float)[:, None]])
-                halo = (self.glare[j][pix] - bt[j][pix]).astype(float)
-                lag = (bp[j][pix] - 1.0).astype(float)
-                out.append((y, nuis, b, halo, lag, j, pix))
-            else:
-                out.append((y, nuis, b))
+    def _gather(self, imgs):
+        out = np.empty(self.pix.size)
+        for j, img in enumerate(imgs):
+            m = self.fj == j
+            out[m] = img.ravel()[self.pix[m]]
         return out
+
+    def nuisance(self, sigma):
+        b = self._gather([_blur(t, sigma) for t in self.t0])
+        btl = self._gather([_blur(t, sigma) for t in self.tlnt])
+        return np.stack([np.ones_like(b), self.xn, self.yn, b - 1.0, btl], axis=1), b
+
+    def residual_ss(self, sigma):
+        x, _ = self.nuisance(sigma)
+        r, _ = _region_solve(self.rid, self.n_reg, x, self.y[:, None])
+        return float(np.sum(r ** 2))
 
 
 def analyse_images(frames, pairs: list, w, ref, detector, scan_ns=(0, 0), *, progress=None) -> dict:
@@ -173,62 +190,58 @@ def analyse_images(frames, pairs: list, w, ref, detector, scan_ns=(0, 0), *, pro
         labels.append(lab)
         taus.append(0.0 if span <= 0 else (f.stamp_ns - t_min) / span - 0.5)
     fr = _Frames(obs, t0s, tps, labels)
-    if not fr.idx:
+    if fr.n_reg == 0:
         return {"performed": False, "why": "no sphere shadow fully on the detector"}
-    # blur: golden-section search of the one Gaussian sigma [px]
+    # blur: golden-section search of the one Gaussian sigma [px]; its remaining error is a nuisance column
     lo, hi = 0.05, 2.5
     g = (np.sqrt(5) - 1) / 2
     a_, b_ = hi - g * (hi - lo), lo + g * (hi - lo)
-    fa, fb = _residual_ss(fr.design(a_)), _residual_ss(fr.design(b_))
-    for _ in range(8):
+    fa, fb = fr.residual_ss(a_), fr.residual_ss(b_)
+    for _ in range(12):
         if fa < fb:
             hi, b_, fb = b_, a_, fa
             a_ = hi - g * (hi - lo)
-            fa = _residual_ss(fr.design(a_))
+            fa = fr.residual_ss(a_)
         else:
             lo, a_, fa = a_, b_, fb
             b_ = lo + g * (hi - lo)
-            fb = _residual_ss(fr.design(b_))
+            fb = fr.residual_ss(b_)
     sigma = 0.5 * (lo + hi)
-    des = fr.design(sigma, with_terms=True)
-    rows, cols = labels[0].shape
-    # floor: s0 from horizontally neighbouring residual pixels, in sqrt(T) units
-    zimg = [np.full(rows * cols, np.nan) for _ in pairs]
-    level = {}
-    for y, nuis, b, _h, _l, j, pix in des:
-        beta = np.linalg.lstsq(nuis, y, rcond=None)[0]
-        zimg[j][pix] = (y - nuis @ beta) / np.sqrt(np.clip(b, 1e-3, None))
-        level.setdefault(j, []).append(beta[0])        # background level (B(T0) - 1 = 0 there)
-    dd = np.concatenate([np.diff(z.reshape(rows, cols), axis=1).ravel() for z in zimg])
-    dd = dd[np.isfinite(dd)]
+    x, b = fr.nuisance(sigma)
+    dlt = 0.02
+    dbs = fr._gather([(_blur(t, sigma + dlt) - _blur(t, max(sigma - dlt, 1e-3))) / (2 * dlt) for t in fr.t0])
+    x = np.hstack([x, dbs[:, None]])
+    halo = fr.glare - b
+    lag = fr._gather([_blur(t, sigma) for t in fr.tprev]) - 1.0
+    sq = 1.0 / np.sqrt(np.clip(b, 1e-3, None))
+    # floor: s0 from horizontally neighbouring residual pixels of the same region, in sqrt(T) units
+    r0, beta0 = _region_solve(fr.rid, fr.n_reg, x, fr.y[:, None])
+    zr = r0[:, 0] * sq
+    nb = (np.diff(fr.pix) == 1) & (np.diff(fr.rid) == 0)
+    dd = np.diff(zr)[nb]
     s0 = 1.4826 * float(np.median(np.abs(dd - np.median(dd)))) / np.sqrt(2.0)
     # regions with structure far beyond the floor after the nuisance (an edge of a support or holder the
     # reference object does not describe, a defect) are left out and counted: the named terms are judged
     # on the regions the nominal scene describes
-    red = []
-    for y, nuis, b, _h, _l, j, pix in des:
-        zz = zimg[j][pix] / s0
-        red.append(float(np.mean(zz ** 2)))
-    red = np.asarray(red)
+    cnt = np.bincount(fr.rid, None, fr.n_reg)
+    red = np.bincount(fr.rid, (zr / s0) ** 2, fr.n_reg) / np.maximum(cnt, 1)
     med = float(np.median(red))
     cut = med + max(0.25, 6.0 * 1.4826 * float(np.median(np.abs(red - med))))
-    keep = red <= cut
-    excluded = int(np.count_nonzero(~keep))
-    des = [d for d, k in zip(des, keep) if k]
+    keep_reg = red <= cut
+    excluded = int(np.count_nonzero(~keep_reg))
+    keep = keep_reg[fr.rid]
+    reg_frame = np.zeros(fr.n_reg, dtype=int)
+    reg_frame[fr.rid] = fr.fj
     level = {}
-    for y, nuis, b, _h, _l, j, pix in des:
-        level.setdefault(j, []).append(float(np.linalg.lstsq(nuis, y, rcond=None)[0][0]))
-    # whitened, nuisance-projected data and bases of the two pixel terms
-    zs, hs, ls = [], [], []
-    n_pix = 0
-    for y, nuis, b, halo, lag, j, pix in des:
-        wgt = 1.0 / (s0 * np.sqrt(np.clip(b, 1e-3, None)))
-        q, _ = np.linalg.qr(nuis * wgt[:, None])
-        for v, sink in ((y, zs), (halo, hs), (lag, ls)):
-            vw = v * wgt
-            sink.append(vw - q @ (q.T @ vw))
-        n_pix += y.size
-    z, h, lg = np.concatenate(zs), np.concatenate(hs), np.concatenate(ls)
+    for rg in np.flatnonzero(keep_reg):
+        level.setdefault(int(reg_frame[rg]), []).append(float(beta0[rg, 0, 0]))   # background (B(T0) - 1 = 0)
+    # whitened, nuisance-projected data and bases of the two pixel terms (kept regions)
+    rid_k = np.unique(fr.rid[keep], return_inverse=True)[1]
+    n_k = int(rid_k.max()) + 1
+    wgt = sq[keep] / s0
+    res, _ = _region_solve(rid_k, n_k, x[keep], np.stack([fr.y[keep], halo[keep], lag[keep]], axis=1), wgt)
+    z, h, lg = res[:, 0], res[:, 1], res[:, 2]
+    n_pix = int(z.size)
     ln_n = np.log(max(n_pix, 2))
     crit = ln_n + BIC_THRESHOLD
     lam = required_noncentrality(crit, 1, LIMIT_POWER)
@@ -273,21 +286,22 @@ def analyse_images(frames, pairs: list, w, ref, detector, scan_ns=(0, 0), *, pro
             findings.append({"term": tid, **{k: IMAGE_TERMS[tid][k] for k in ("name", "mechanism")}, **t})
     findings.sort(key=lambda f: -f["significance_sigma"])
     zres = z - basis @ beta_j
-    bands = _bands(des, zres, t0s, s0, rows, cols)
-    say(f"image level: {len(pairs)} projection pairs, {len(fr.idx)} shadows ({excluded} left out), {n_pix} px, blur {sigma:.2f} px, "
-        f"pixel floor {s0:.4g} sqrt(T); " + (", ".join(f"{f['term']} {f['value']:.3g} {f['unit']} "
-                                                       f"({f['significance_sigma']:.1f} sigma)" for f in findings)
-                                              or "nothing named"))
-    return {"performed": True, "pairs": [list(p) for p in pairs], "n_shadows": len(fr.idx), "n_pixels": int(n_pix),
+    bands = _bands(fr, keep, zres, t0s)
+    say(f"image level: {len(pairs)} projection pairs, {fr.n_reg} shadows ({excluded} left out), {n_pix} px, "
+        f"blur {sigma:.2f} px, pixel floor {s0:.4g} sqrt(T); "
+        + (", ".join(f"{f['term']} {f['value']:.3g} {f['unit']} ({f['significance_sigma']:.1f} sigma)"
+                     for f in findings) or "nothing named"))
+    return {"performed": True, "pairs": [list(p) for p in pairs], "n_shadows": int(fr.n_reg), "n_pixels": n_pix,
             "excluded_shadows": excluded, "excluded_rule": f"chi2 per pixel after the nuisance above {cut:.3g} "
             f"(median {med:.3g}): structure the nominal scene does not describe (e.g. a support or holder edge)",
             "blur_sigma_px": sigma, "pixel_floor_sqrtT": s0, "terms": terms, "findings": findings,
             "residual_by_band": bands,
-            "nuisance": "per shadow region: offset, gradient, contrast, attenuation (T ln T), blur derivative; one blur sigma",
+            "nuisance": "per shadow region: offset, gradient, contrast, attenuation (T ln T), blur derivative; "
+                        "one blur sigma",
             "catalogue": [{"id": k, **v} for k, v in IMAGE_TERMS.items()]}
 
 
-def _bands(des, zres, t0s, s0, rows, cols, edges=(-4, -1, 1, 3, 6, 10)):
+def _bands(fr, keep, zres, t0s, edges=(-4, -1, 1, 3, 6, 10)):
     """Mean whitened residual (after nuisance and named terms) per band of distance from the shadow edge [px],
     with its significance (sigma; white-noise floor)."""
     dist = []
@@ -295,8 +309,8 @@ def _bands(des, zres, t0s, s0, rows, cols, edges=(-4, -1, 1, 3, 6, 10)):
         inside = (t0 < 0.999).astype(np.uint8)
         d_out = cv2.distanceTransform(1 - inside, cv2.DIST_L2, 3)
         d_in = cv2.distanceTransform(inside, cv2.DIST_L2, 3)
-        dist.append(np.where(inside > 0, -d_in, d_out).ravel())
-    d = np.concatenate([dist[j][pix] for *_x, j, pix in des])
+        dist.append(np.where(inside > 0, -d_in, d_out))
+    d = fr._gather(dist)[keep]
     k = np.digitize(d, edges) - 1
     ok = (k >= 0) & (k < len(edges) - 1)
     nb = len(edges) - 1
