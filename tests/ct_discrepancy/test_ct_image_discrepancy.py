@@ -16,7 +16,7 @@ DET = DetectorSpec(512, 512, 0.0008)
 N_VIEWS = 72
 
 
-def _frames(seed, effect=None, amp=0.0, n_pairs=3):
+def _frames(seed, effect=None, amp=0.0, n_pairs=2):
     rng = np.random.default_rng(seed)
     w, _srd = draw_instrument(rng)
     i0, blur = float(rng.uniform(2e4, 6e4)), float(rng.uniform(0.4, 1.0))
