@@ -180,6 +180,17 @@ def write_report(out: dict, tmp: pathlib.Path, plots: list, recording) -> None:
         lines += ["", "Residual by distance from the shadow edge (whitened mean, significance): " + "; ".join(
             f"{b['from_px']}..{b['to_px']} px: {b['mean_sigma_units']:+.3f} ({b['significance_sigma']:.1f})"
             for b in img["residual_by_band"])]
+    sp = out.get("stage_positions")
+    if sp:
+        lines += ["", "## Further stage positions (each with its own nominal calibration)", "",
+                  "| position | SRD [mm] | adequate | named |", "| --- | --- | --- | --- |"]
+        lines += [f"| {r['position'] + 1} | {r['srd_reported_m'] * 1e3:.3f} | {r['adequate']} | "
+                  + (", ".join(f"{f['term']} {f['magnitude']:.3g} {f['unit']}" for f in r["findings"]) or "-") + " |"
+                  for r in sp["positions"]]
+        lines += [f"- position {r['position'] + 1} not judged: {r['why']}" for r in sp["not_judged"]]
+        lines += [f"- trend of {t['term']} with SRD: {t.get('slope_per_m_srd', float('nan')):.4g} {t['unit']}/m "
+                  f"({t.get('slope_significance_sigma', float('nan')):.1f} sigma) over {t['n_positions']} positions"
+                  for t in sp["trends"]]
     lines += ["", "## Detection limits of this recording (90 % power)", "", "| term | smallest detectable | reveal by |",
               "| --- | --- | --- |"]
     for k, v in out["detection_limits"].items():
@@ -243,10 +254,24 @@ def main(argv=None) -> int:
         out["image_level"] = {"performed": False, "why": f"image-level check failed: {exc}"}
     out["verdict"] += image_sentence(out["image_level"])
     t3 = time.perf_counter()
+    if len(res.acc.positions) > 1:          # the stage-position axis: the engine at every further position
+        more = [(p.srd_reported_m, p.observations()) for p in res.acc.positions[1:]]
+        sp = ct_discrepancy.run_positions(more, ref.centres_of_m, instrument.detector, instrument.sdd_reported_m,
+                                          max_terms=args.max_terms, progress=say)
+        for r in sp["positions"] + sp["not_judged"]:
+            r["position"] += 1
+        out["stage_positions"] = sp
+        bad = [r for r in sp["positions"] if not r["adequate"]]
+        out["verdict"] += (f" Further stage positions: {len(bad)} of {len(sp['positions'])} judged inadequate"
+                           + (" (" + "; ".join(f"position {r['position'] + 1}: "
+                                                + (", ".join(f['term'] for f in r['findings']) or "unexplained structure")
+                                                for r in bad) + ")" if bad else "") + ".")
+    t3b = time.perf_counter()
     out["recording"] = str(rec)
     out["nominal_outcome"] = res.static.outcome
     out["problems"] = res.problems
     out["timing_s"] = {"replay_and_calibration": t1 - t0, "engine": t2 - t1, "image_level": t3 - t2,
+                       "stage_positions": t3b - t3,
                        "replay_cpu_s": replay_cpu, "workers": workers}
     out_dir = pathlib.Path(args.out) if args.out else rec.parent / f"{rec.stem}_discrepancy"
     out_dir.mkdir(parents=True, exist_ok=True)
