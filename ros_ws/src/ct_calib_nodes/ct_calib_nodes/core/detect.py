@@ -246,6 +246,7 @@ class DetectionSettings:
     background_edge_sigma_px: float = 0.0
     background_edge_clusters: float = 1.0
     background_edge_refit: bool = True
+    max_corner_misfit: float | None = 1.5
 
     def __post_init__(self):
         if self.ellipse_fitter not in ("fitEllipse", "fitEllipseAMS", "fitEllipseDirect", "geometric"):
@@ -336,6 +337,9 @@ class FrameDetections:
         Hot/dead pixels repaired within 1.5 semi-major axes + 4 px of each centre.
     hot_pixels_px : ndarray of shape (K, 2)
         (col, row) of every repaired hot/dead pixel near a shadow.
+    on_corner : ndarray of shape (M,), bool
+        Measured with the corner background model (two straight steps; the one-direction
+        model did not hold round this shadow).
     """
 
     centre_px: np.ndarray
@@ -354,6 +358,7 @@ class FrameDetections:
     nfev: int = 0
     n_hot_pixels: np.ndarray | None = None
     hot_pixels_px: np.ndarray | None = None
+    on_corner: np.ndarray | None = None
 
     def __len__(self):
         return self.centre_px.shape[0]
@@ -698,7 +703,10 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
     clock.lap("local_background")                                                         # hot pixels
     meas = _measure_edges_and_fit(trans, model, cand, st)                                 # 5 edges, 6 fit
     clock.lap("edges_fit")
-    accepted = _screen_fits(meas, cand, model, st, drange, rej)                           # 7 rejection
+    deferred = []
+    accepted = _screen_fits(meas, cand, model, st, drange, rej, deferred=deferred)        # 7 rejection
+    if deferred:                                                                          # 7b corners
+        accepted = sorted(accepted + _corner_pass(trans, cand, model, meas, deferred, st, drange, rej))
     clock.lap("rejection")
     accepted = _centre_uncertainty(accepted, meas, model, st)                             # 8 uncertainty
     out = _assemble(accepted, rej, meas.n_fits, sdd_px, principal_point_px, trans.shape, hot, "",
@@ -1035,6 +1043,7 @@ class _LocalBackground:
     structure: np.ndarray   # (C,) rms misfit of the model on the background samples / noise
     coherence: np.ndarray   # (C,)
     minor: np.ndarray       # (C,) gradient energy along the structure / the noise's
+    corner: tuple | None = None  # per candidate a _CornerModel whose grad marks background edges
 
 
 def _local_backgrounds(trans, bg, cand, st):
@@ -1182,6 +1191,149 @@ def _background_at(model, x, y):
     return a_u + b_u * v, u
 
 
+# --------------------------------------------------------------------------- stage 4b: corners
+
+@dataclass
+class _CornerModel:
+    """Background of one shadow at a corner of two straight steps (see :func:`_fit_corner`)."""
+    ok: bool
+    detail: str
+    y0: int = 0             # window origin (row, col) in the image
+    x0: int = 0
+    bg: np.ndarray = None   # (h, w) background B in the window
+    grad: np.ndarray = None  # (h, w) relative change of B over 4 px (|grad log B| * 4)
+    ratio: float = np.nan   # rms misfit in the annulus / pixel noise there
+    n: int = 0              # annulus samples used
+
+
+def _corner_design(p, x, y):
+    """Columns [1, x, y, S1, S2, S1 S2] of the log-background for line parameters
+    p = (theta1, d1, log w1, theta2, d2, log w2); S_k a blurred step (erf) across line k."""
+    from scipy.special import erf  # noqa: PLC0415  (only corner shadows need it)
+    cols = [np.ones_like(x), x, y]
+    s = []
+    for k in (0, 3):
+        t = (np.cos(p[k]) * x + np.sin(p[k]) * y - p[k + 1]) / np.exp(p[k + 2])
+        s.append(0.5 * (1.0 + erf(t)))
+    return np.stack(cols + [s[0], s[1], s[0] * s[1]], axis=-1)
+
+
+def _fit_corner(trans, cand, c, theta1, st):
+    """Log-background of candidate ``c`` as a plane plus two blurred straight steps and their
+    product (a plate or holder corner: the region inside both steps, with any blur or ramp width
+    per step), fitted to the annulus between ``radius + exclusion_px`` and ``2 radius +
+    exclusion_px`` (other shadows masked) by variable projection: the six line parameters by
+    least squares, the six amplitudes linearly for each. The steps' lines are started from the
+    strongest gradient across ``theta1`` (the one-direction model's structure) and the
+    structure tensor of the gradients away from that step.
+
+    The model's own check: the rms misfit on the annulus against the pixel noise there (from
+    differences of neighbouring annulus pixels, robust); returned in ``ratio``."""
+    from scipy.optimize import least_squares  # noqa: PLC0415
+    rows, cols = trans.shape
+    cx, cy = cand.centre[c]
+    r = float(cand.radius[c])
+    rin = r + st.exclusion_px
+    rout = rin + max(r, 8.0)
+    R = int(np.ceil(rout)) + 1
+    y0, x0 = max(int(round(cy)) - R, 0), max(int(round(cx)) - R, 0)
+    y1, x1 = min(int(round(cy)) + R + 1, rows), min(int(round(cx)) + R + 1, cols)
+    win = trans[y0:y1, x0:x1].astype(np.float64)
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    X, Y = xx - cx, yy - cy
+    rho = np.hypot(X, Y)
+    use = (rho > rin) & (rho < rout) & (cand.shadows[y0:y1, x0:x1] == 0) & (win > 1e-6)
+    n = int(use.sum())
+    if n < 100:
+        return _CornerModel(False, f"only {n} background samples round the shadow")
+    L = np.log(np.where(win > 1e-6, win, 1e-6))
+    # noise in the annulus: neighbouring-pixel differences of log T, both pixels in the annulus
+    dh = (L[:, 1:] - L[:, :-1])[use[:, 1:] & use[:, :-1]]
+    dv = (L[1:, :] - L[:-1, :])[use[1:, :] & use[:-1, :]]
+    d = np.concatenate([dh, dv])
+    noise = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2.0)
+    xs, ys, ls = X[use], Y[use], L[use]
+    # start: step 1 across theta1 where the gradient across it is strongest
+    gy, gx = np.gradient(L)
+    n1 = np.array([np.cos(theta1), np.sin(theta1)])
+    g1 = np.abs(gx * n1[0] + gy * n1[1]) * use
+    u1 = X * n1[0] + Y * n1[1]
+    d1 = float(u1.ravel()[np.argmax(g1)])
+    far = use & (np.abs(u1 - d1) > 4.0)
+    jxx, jyy, jxy = np.sum(gx * gx * far), np.sum(gy * gy * far), np.sum(gx * gy * far)
+    theta2 = 0.5 * np.arctan2(2 * jxy, jxx - jyy)
+    n2 = np.array([np.cos(theta2), np.sin(theta2)])
+    g2 = np.abs(gx * n2[0] + gy * n2[1]) * far
+    d2 = float((X * n2[0] + Y * n2[1]).ravel()[np.argmax(g2)])
+
+    def resid(p):
+        A = _corner_design(p, xs, ys)
+        coef, *_ = np.linalg.lstsq(A, ls, rcond=None)
+        return A @ coef - ls
+
+    best = None
+    for p0 in ([theta1, d1, 0.4, theta2, d2, 0.4],):
+        try:
+            sol = least_squares(resid, np.array(p0, dtype=float), method="lm", max_nfev=400, x_scale="jac")
+        except (ValueError, np.linalg.LinAlgError) as e:      # pragma: no cover - defensive
+            return _CornerModel(False, f"corner fit failed: {e}")
+        if best is None or sol.cost < best.cost:
+            best = sol
+    p = best.x
+    A = _corner_design(p, xs, ys)
+    coef, *_ = np.linalg.lstsq(A, ls, rcond=None)
+    rms = float(np.sqrt(np.mean((A @ coef - ls) ** 2)))
+    ratio = rms / max(noise, 1e-9)
+    logb = _corner_design(p, X.astype(np.float64), Y.astype(np.float64)) @ coef
+    gyb, gxb = np.gradient(logb)
+    return _CornerModel(True, "", y0, x0, np.exp(logb), 4.0 * np.hypot(gxb, gyb), ratio, n)
+
+def _corner_pass(trans, cand, model, meas, deferred, st, drange, rej):
+    """Measure the shadows the one-direction background refused (``deferred`` from
+    :func:`_screen_fits`) with the corner model (:func:`_fit_corner`): where its misfit on the
+    annulus is within ``max_corner_misfit`` x the noise there, the window is divided by it, the
+    usual local background (now of a flat window), edges and fit run on it, and the ordinary
+    screens (size, shape, contrast, darkness) apply; the measurement replaces the candidate's
+    row of ``meas``. Returns the accepted candidates; the others are refused as
+    ``background_structure`` with both models' figures."""
+    out = []
+    depth_all = -np.log(np.clip(meas.qmin, 1e-6, None))
+    depth_ref = float(np.median(depth_all[meas.ok])) if np.any(meas.ok) else np.nan
+    for c, where, a, detail in deferred:
+        if st.max_corner_misfit is None:
+            rej.add(where, a, "background_structure", detail)
+            continue
+        theta1 = float(np.arctan2(model.eu[c, 1], model.eu[c, 0]))
+        cm = _fit_corner(trans, cand, c, theta1, st)
+        if not cm.ok or not cm.ratio <= st.max_corner_misfit:
+            why = cm.detail if not cm.ok else (f"misfit {cm.ratio:.2f} x the annulus noise > "
+                                               f"{st.max_corner_misfit}")
+            rej.add(where, a, "background_structure", f"{detail}; corner model of two steps: {why}")
+            continue
+        h, w = cm.bg.shape
+        sl = (slice(cm.y0, cm.y0 + h), slice(cm.x0, cm.x0 + w))
+        saved = trans[sl].copy()
+        k = np.array([c])
+        sub = _Candidates(index=cand.index[k], centre=cand.centre[k], radius=cand.radius[k], area=cand.area[k],
+                          shadows=cand.shadows, noise=cand.noise)
+        try:
+            trans[sl] = (saved / cm.bg).astype(trans.dtype)
+            sm, _ = _local_backgrounds(trans, None, sub, st)
+            sm.corner = (cm,)
+            smeas = _measure_edges_and_fit(trans, sm, sub, st)
+        finally:
+            trans[sl] = saved
+        if not _screen_fits(smeas, sub, sm, st, drange, rej, depth_ref=depth_ref, structure=False):
+            continue
+        for f in ("ok", "fits", "n_pts", "rms", "s2", "sums", "qmin", "edge_frac", "edge_shift"):
+            getattr(meas, f)[c] = getattr(smeas, f)[0]
+        meas.normals[c] = smeas.normals[0]
+        meas.n_fits += smeas.n_fits
+        meas.corner.add(c)
+        out.append(c)
+    return out
+
+
 # --------------------------------------------------------------------------- stage 6-7: edges and fits
 
 @dataclass
@@ -1198,6 +1350,7 @@ class _Measurement:
     edge_frac: np.ndarray   # fraction of edge points on a strong background edge
     n_fits: int
     edge_shift: np.ndarray  # (C, 2) centre minus the centre fitted without background-edge points
+    corner: set = None      # candidates measured with the corner model
 
 
 def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True):
@@ -1254,6 +1407,11 @@ def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True)
         n = model.a.shape[1]
         iu = np.clip(np.rint(u - model.umin).astype(np.intp), 0, n - 1)
         g = np.take_along_axis(model.edge_gradient, iu, axis=1)
+        if model.corner is not None:      # corner shadows: the two-step model's own gradient
+            for j, cm in enumerate(model.corner):
+                if cm is not None:
+                    g[j] = _bilinear(cm.grad, np.clip(ex[j] - cm.x0, 0, cm.grad.shape[1] - 1),
+                                     np.clip(ey[j] - cm.y0, 0, cm.grad.shape[0] - 1))
         on_edge = valid & (g > st.background_edge_gradient)
     return ex, ey, valid, level, qmin, on_edge, nr
 
@@ -1412,13 +1570,19 @@ def _measure_edges_and_fit(trans, model, cand, st):
         centre = np.where(ok[:, None], fits[:, :2], centre)
         radius = np.where(ok, np.sqrt(np.abs(fits[:, 2] * fits[:, 3])), radius)
     return _Measurement(ok=ok, why=why, fits=fits, n_pts=n_pts, rms=rms, s2=s2, normals=normals, sums=sums,
-                        qmin=qmin, edge_frac=edge_frac, n_fits=n_fits, edge_shift=shift)
+                        qmin=qmin, edge_frac=edge_frac, n_fits=n_fits, edge_shift=shift,
+                        corner=set())
 
 
 # --------------------------------------------------------------------------- stage 8-9: rejection, uncertainty
 
-def _screen_fits(meas, cand, model, st, drange, rej):
-    """Post-fit screening; returns the indices (into the candidates) of accepted shadows."""
+def _screen_fits(meas, cand, model, st, drange, rej, deferred=None, depth_ref=None, structure=True):
+    """Post-fit screening; returns the indices (into the candidates) of accepted shadows.
+
+    ``deferred``: a list to which ``background_structure`` refusals go as (c, centre, area,
+    detail) instead of ``rej`` (the corner model may still measure them). ``depth_ref``: the
+    frame's median optical depth (default: from ``meas``). ``structure=False`` skips the
+    one-direction model's structure checks (the corner pass has its own)."""
     if drange is not None:
         dmin = drange[0] * (1.0 - st.size_tolerance)
         dmax = drange[1] * (1.0 + st.size_tolerance)
@@ -1427,7 +1591,9 @@ def _screen_fits(meas, cand, model, st, drange, rej):
     misfit = model.structure / max(float(np.median(model.structure)), 1e-9)
     cross = model.minor / max(float(np.median(model.minor)), 1e-9)
     depth_all = -np.log(np.clip(meas.qmin, 1e-6, None))
-    depth_ref = float(np.median(depth_all[ok])) if np.any(ok) else np.nan
+    if depth_ref is None:
+        depth_ref = float(np.median(depth_all[ok])) if np.any(ok) else np.nan
+    n_ok = np.count_nonzero(ok) if structure else 3
     out = []
     for c in range(len(cand.index)):
         where, a = cand.centre[c], cand.area[c]
@@ -1453,18 +1619,22 @@ def _screen_fits(meas, cand, model, st, drange, rej):
                 rej.add(where, a, "not_a_sphere_size", f"fitted diameter {dfit:.1f} px outside "
                                                        f"[{dmin:.1f}, {dmax:.1f}]")
                 continue
-        if (st.overlap_darkness is not None and np.isfinite(depth_ref) and np.count_nonzero(ok) >= 3
+        if (st.overlap_darkness is not None and np.isfinite(depth_ref) and n_ok >= 3
                 and depth_all[c] > st.overlap_darkness * depth_ref):
             rej.add(where, a, "overlap", f"shadow optical depth {depth_all[c]:.2f} > {st.overlap_darkness} x "
                                          f"median {depth_ref:.2f}: spheres in line")
             continue
+        if not structure:
+            out.append(c)
+            continue
+        to = (lambda w, ar, why, d: deferred.append((c, w, ar, d))) if deferred is not None else rej.add
         if cross[c] > st.max_cross_structure:
-            rej.add(where, a, "background_structure",
+            to(where, a, "background_structure",
                     f"background changes along its main structure too ({cross[c]:.1f} x the frame's median "
                     f"> {st.max_cross_structure}): a corner of two steps or bands, no background model holds")
             continue
         if misfit[c] > st.max_background_misfit:
-            rej.add(where, a, "background_structure",
+            to(where, a, "background_structure",
                     f"background round the shadow misfits a straight structure {misfit[c]:.1f} x as much as the "
                     f"frame's median shadow (> {st.max_background_misfit}): a corner or curved step")
             continue
@@ -1531,6 +1701,7 @@ def _runs(flags):
 
 def _assemble(accepted, rej, n_fits, sdd_px, pp, shape, hot, message, meas=None, cand=None, model=None):
     m = len(accepted)
+    corner = meas.corner if meas is not None else set()
     on_edge = np.zeros(m, dtype=bool)
     if m:
         idx = np.array([a[0] for a in accepted])
@@ -1573,7 +1744,8 @@ def _assemble(accepted, rej, n_fits, sdd_px, pp, shape, hot, message, meas=None,
         centre_px=centre, centre_corrected_px=corrected, centre_cov_px2=cov, semi_axes_px=axes,
         angle_rad=ang, n_edge_points=npts, fit_rms_px=rms, min_transmission=qmin, on_background_edge=on_edge,
         rejected=rejected, background=1.0, success=m > 0, message=message, nfev=int(n_fits),
-        n_hot_pixels=n_hot, hot_pixels_px=hot)
+        n_hot_pixels=n_hot, hot_pixels_px=hot,
+        on_corner=np.array([a[0] in corner for a in accepted], dtype=bool))
 
 
 # --------------------------------------------------------------------------- baselines
