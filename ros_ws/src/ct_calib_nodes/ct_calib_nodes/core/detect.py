@@ -1208,14 +1208,62 @@ class _CornerModel:
 
 def _corner_design(p, x, y):
     """Columns [1, x, y, S1, S2, S1 S2] of the log-background for line parameters
-    p = (theta1, d1, log w1, theta2, d2, log w2); S_k a blurred step (erf) across line k."""
+    p = (theta1, d1, log w1, theta2, d2, log w2) (or a batch of them, shape (m, 6): the result
+    gets a leading axis m); S_k a blurred step (erf) across line k."""
     from scipy.special import erf  # noqa: PLC0415  (only corner shadows need it)
-    cols = [np.ones_like(x), x, y]
+    p = np.asarray(p, dtype=np.float64)
+    pb = p.reshape(-1, 6)[:, :, None]
+    shape = np.shape(x)
+    x, y = np.ravel(x), np.ravel(y)
     s = []
     for k in (0, 3):
-        t = (np.cos(p[k]) * x + np.sin(p[k]) * y - p[k + 1]) / np.exp(p[k + 2])
+        w = np.exp(np.clip(pb[:, k + 2], -3.0, 3.0))           # step width 0.05 to 20 px
+        t = (np.cos(pb[:, k]) * x + np.sin(pb[:, k]) * y - pb[:, k + 1]) / w
         s.append(0.5 * (1.0 + erf(t)))
-    return np.stack(cols + [s[0], s[1], s[0] * s[1]], axis=-1)
+    one = np.ones_like(s[0])
+    A = np.stack([one, one * x, one * y, s[0], s[1], s[0] * s[1]], axis=-1).reshape((-1,) + shape + (6,))
+    return A if p.ndim == 2 else A[0]
+
+
+def _vp_residuals(P, x, y, l):
+    """Residuals (m, n) of the variable-projection fit for a batch of line parameters P (m, 6)."""
+    A = _corner_design(P, x, y)
+    ata = np.einsum("mni,mnj->mij", A, A) + 1e-12 * np.eye(6)
+    coef = np.linalg.solve(ata, np.einsum("mni,n->mi", A, l)[..., None])[..., 0]
+    return np.einsum("mni,mi->mn", A, coef) - l
+
+
+def _lm_lines(p0, x, y, l, iters=30, give_up=np.inf):
+    """Levenberg-Marquardt on the six line parameters: forward-difference Jacobian and four
+    damping factors per iteration, each evaluated as one batch; stops when the cost falls by
+    less than 1e-6 relative, or after 10 iterations if the rms residual is still above
+    ``give_up`` (the model cannot pass its check)."""
+    h = np.array([1e-4, 1e-3, 1e-3, 1e-4, 1e-3, 1e-3])
+    p = np.asarray(p0, dtype=np.float64)
+    r = _vp_residuals(p[None], x, y, l)[0]
+    cost = float(r @ r)
+    lam = 1e-3
+    damp = np.array([0.1, 1.0, 10.0, 100.0])
+    for _ in range(iters):
+        J = (_vp_residuals(p[None] + np.diag(h), x, y, l) - r).T / h        # (n, 6)
+        H = J.T @ J
+        g = J.T @ r
+        D = np.diag(np.maximum(np.diag(H), 1e-12))
+        steps = np.linalg.solve(H[None] + (lam * damp)[:, None, None] * D[None] + 1e-12 * np.eye(6),
+                                np.broadcast_to(-g, (4, 6))[..., None])[..., 0]
+        R = _vp_residuals(p[None] + steps, x, y, l)
+        costs = np.einsum("mn,mn->m", R, R)
+        j = int(np.argmin(costs))
+        if not costs[j] < cost:
+            lam *= 1000.0
+            if lam > 1e8:
+                break
+            continue
+        done = cost - costs[j] < 1e-6 * cost
+        p, r, cost, lam = p + steps[j], R[j], float(costs[j]), max(lam * damp[j] * 0.3, 1e-7)
+        if done or (_ >= 10 and np.sqrt(cost / l.size) > give_up):
+            break
+    return p
 
 
 def _fit_corner(trans, cand, c, theta1, st):
@@ -1227,9 +1275,8 @@ def _fit_corner(trans, cand, c, theta1, st):
     strongest gradient across ``theta1`` (the one-direction model's structure) and the
     structure tensor of the gradients away from that step.
 
-    The model's own check: the rms misfit on the annulus against the pixel noise there (from
+    The line parameters by :func:`_lm_lines`. The model's own check: the rms misfit on the annulus against the pixel noise there (from
     differences of neighbouring annulus pixels, robust); returned in ``ratio``."""
-    from scipy.optimize import least_squares  # noqa: PLC0415
     rows, cols = trans.shape
     cx, cy = cand.centre[c]
     r = float(cand.radius[c])
@@ -1271,21 +1318,11 @@ def _fit_corner(trans, cand, c, theta1, st):
     step = max(1, int(np.ceil(xs.size / 200)))
     xf, yf, lf = xs[::step], ys[::step], ls[::step]
 
-    def resid(p):
-        A = _corner_design(p, xf, yf)
-        coef = np.linalg.solve(A.T @ A + 1e-12 * np.eye(6), A.T @ lf)     # 6 x 6 normal equations
-        return A @ coef - lf
-
-    best = None
-    for p0 in ([theta1, d1, 0.4, theta2, d2, 0.4],):
-        try:
-            sol = least_squares(resid, np.array(p0, dtype=float), method="lm", max_nfev=100, x_scale="jac",
-                                ftol=1e-5, xtol=1e-5)
-        except (ValueError, np.linalg.LinAlgError) as e:      # pragma: no cover - defensive
-            return _CornerModel(False, f"corner fit failed: {e}")
-        if best is None or sol.cost < best.cost:
-            best = sol
-    p = best.x
+    try:
+        lim = np.inf if st.max_corner_misfit is None else 2.0 * st.max_corner_misfit * noise
+        p = _lm_lines([theta1, d1, 0.4, theta2, d2, 0.4], xf, yf, lf, give_up=lim)
+    except np.linalg.LinAlgError as e:      # pragma: no cover - defensive
+        return _CornerModel(False, f"corner fit failed: {e}")
     A = _corner_design(p, xs, ys)
     coef, *_ = np.linalg.lstsq(A, ls, rcond=None)
     rms = float(np.sqrt(np.mean((A @ coef - ls) ** 2)))
