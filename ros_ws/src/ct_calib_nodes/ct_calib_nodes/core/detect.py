@@ -1201,25 +1201,36 @@ class _CornerModel:
     y0: int = 0             # window origin (row, col) in the image
     x0: int = 0
     bg: np.ndarray = None   # (h, w) background B in the window
-    grad: np.ndarray = None  # (h, w) relative change of B over 4 px (|grad log B| * 4)
+    grad: np.ndarray = None  # (h, w) relative change of B over 4 px (|grad log B| * 4); 1e3 in step zones
     ratio: float = np.nan   # rms misfit in the annulus / pixel noise there
     n: int = 0              # annulus samples used
+    q: np.ndarray = None    # (14,) line parameters and amplitudes
+    cov_q: np.ndarray = None  # (14, 14) their covariance from the annulus fit
+    xy: tuple = None        # window coordinates relative to the candidate centre
+    sector_res: np.ndarray = None  # (12,) mean log residual of the inner annulus ring per 30 deg sector
 
 
 def _corner_design(p, x, y):
     """Columns [1, x, y, S1, S2, S1 S2] of the log-background for line parameters
-    p = (theta1, d1, log w1, theta2, d2, log w2) (or a batch of them, shape (m, 6): the result
-    gets a leading axis m); S_k a blurred step (erf) across line k."""
-    from scipy.special import erf  # noqa: PLC0415  (only corner shadows need it)
+    p = (theta1, d1, log sigma1, log W1, theta2, d2, log sigma2, log W2) (or a batch of them,
+    shape (m, 8): the result gets a leading axis m). S_k is a linear ramp of width W_k across
+    line k (a plate's side face seen obliquely: its thickness, hence its log-attenuation, grows
+    linearly) blurred by a Gaussian of sd sigma_k; W -> 0 gives a blurred step."""
+    from scipy.special import ndtr  # noqa: PLC0415  (only corner shadows need it)
     p = np.asarray(p, dtype=np.float64)
-    pb = p.reshape(-1, 6)[:, :, None]
+    pb = p.reshape(-1, 8)[:, :, None]
     shape = np.shape(x)
     x, y = np.ravel(x), np.ravel(y)
     s = []
-    for k in (0, 3):
-        w = np.exp(np.clip(pb[:, k + 2], -3.0, 3.0))           # step width 0.05 to 20 px
-        t = (np.cos(pb[:, k]) * x + np.sin(pb[:, k]) * y - pb[:, k + 1]) / w
-        s.append(0.5 * (1.0 + erf(t)))
+    for k in (0, 4):
+        sig = np.exp(np.clip(pb[:, k + 2], -3.0, 3.0))           # blur 0.05 to 20 px
+        wid = np.exp(np.clip(pb[:, k + 3], -3.0, 4.0))           # ramp 0.05 to 55 px
+        t = np.cos(pb[:, k]) * x + np.sin(pb[:, k]) * y - pb[:, k + 1]
+
+        def g(u):               # integral of the blurred step
+            z = u / sig
+            return u * ndtr(z) + sig * np.exp(-0.5 * z * z) / np.sqrt(2 * np.pi)
+        s.append((g(t + 0.5 * wid) - g(t - 0.5 * wid)) / wid)
     one = np.ones_like(s[0])
     A = np.stack([one, one * x, one * y, s[0], s[1], s[0] * s[1]], axis=-1).reshape((-1,) + shape + (6,))
     return A if p.ndim == 2 else A[0]
@@ -1238,7 +1249,7 @@ def _lm_lines(p0, x, y, l, iters=30, give_up=np.inf):
     damping factors per iteration, each evaluated as one batch; stops when the cost falls by
     less than 1e-6 relative, or after 10 iterations if the rms residual is still above
     ``give_up`` (the model cannot pass its check)."""
-    h = np.array([1e-4, 1e-3, 1e-3, 1e-4, 1e-3, 1e-3])
+    h = np.array([1e-4, 1e-3, 1e-3, 1e-3, 1e-4, 1e-3, 1e-3, 1e-3])
     p = np.asarray(p0, dtype=np.float64)
     r = _vp_residuals(p[None], x, y, l)[0]
     cost = float(r @ r)
@@ -1249,8 +1260,8 @@ def _lm_lines(p0, x, y, l, iters=30, give_up=np.inf):
         H = J.T @ J
         g = J.T @ r
         D = np.diag(np.maximum(np.diag(H), 1e-12))
-        steps = np.linalg.solve(H[None] + (lam * damp)[:, None, None] * D[None] + 1e-12 * np.eye(6),
-                                np.broadcast_to(-g, (4, 6))[..., None])[..., 0]
+        steps = np.linalg.solve(H[None] + (lam * damp)[:, None, None] * D[None] + 1e-12 * np.eye(p.size),
+                                np.broadcast_to(-g, (4, p.size))[..., None])[..., 0]
         R = _vp_residuals(p[None] + steps, x, y, l)
         costs = np.einsum("mn,mn->m", R, R)
         j = int(np.argmin(costs))
@@ -1320,16 +1331,41 @@ def _fit_corner(trans, cand, c, theta1, st):
 
     try:
         lim = np.inf if st.max_corner_misfit is None else 2.0 * st.max_corner_misfit * noise
-        p = _lm_lines([theta1, d1, 0.4, theta2, d2, 0.4], xf, yf, lf, give_up=lim)
+        p = _lm_lines([theta1, d1, -0.4, 0.0, theta2, d2, -0.4, 0.0], xf, yf, lf, give_up=lim)
     except np.linalg.LinAlgError as e:      # pragma: no cover - defensive
         return _CornerModel(False, f"corner fit failed: {e}")
     A = _corner_design(p, xs, ys)
     coef, *_ = np.linalg.lstsq(A, ls, rcond=None)
-    rms = float(np.sqrt(np.mean((A @ coef - ls) ** 2)))
+    res = A @ coef - ls
+    rms = float(np.sqrt(np.mean(res ** 2)))
     ratio = rms / max(noise, 1e-9)
+    # the misfit next to the shadow: mean residual of the inner ring (4 px) in 12 sectors
+    ang = np.arctan2(ys, xs)
+    sec = np.floor((ang + np.pi) / (2 * np.pi) * 12).astype(int) % 12
+    inner = np.hypot(xs, ys) < rin + 4.0
+    sector_res = np.array([float(np.mean(res[(sec == k) & inner])) if np.any((sec == k) & inner) else 0.0
+                           for k in range(12)])
     logb = _corner_design(p, X.astype(np.float64), Y.astype(np.float64)) @ coef
     gyb, gxb = np.gradient(logb)
-    return _CornerModel(True, "", y0, x0, np.exp(logb), 4.0 * np.hypot(gxb, gyb), ratio, n)
+    grad = 4.0 * np.hypot(gxb, gyb)
+    # the transition zone of each step (2 widths + 1 px either side of its line) counts as a
+    # background edge wherever the step is more than 10 noise sd high: edge points there carry
+    # the model's error near the lines, which the background-edge terms (cluster-robust and
+    # refit-without) take from the data
+    for k, (amp1, amp2) in enumerate(((coef[3], coef[3] + coef[5]), (coef[4], coef[4] + coef[5]))):
+        if max(abs(amp1), abs(amp2)) > 10.0 * noise:
+            j = 4 * k
+            w = 2.0 * np.exp(np.clip(p[j + 2], -3.0, 3.0)) + 0.5 * np.exp(np.clip(p[j + 3], -3.0, 4.0))
+            zone = np.abs(np.cos(p[j]) * X + np.sin(p[j]) * Y - p[j + 1]) < w + 1.0
+            grad = np.where(zone, np.maximum(grad, 1e3), grad)
+    # covariance of all twelve parameters: s^2 (J^T J)^-1, J the Jacobian of the log-model on
+    # every annulus sample (the amplitudes' columns are the design itself)
+    h = np.array([1e-4, 1e-3, 1e-3, 1e-3, 1e-4, 1e-3, 1e-3, 1e-3])
+    jn = ((_corner_design(p[None] + np.diag(h), xs, ys) @ coef) - (A @ coef)[None]) / h[:, None]
+    J = np.column_stack([jn.T, A])
+    cov_q = rms ** 2 * np.linalg.pinv(J.T @ J)
+    return _CornerModel(True, "", y0, x0, np.exp(logb), grad, ratio, n, np.concatenate([p, coef]), cov_q,
+                        (X.astype(np.float64), Y.astype(np.float64)), sector_res)
 
 def _corner_pass(trans, cand, model, meas, deferred, st, drange, rej):
     """Measure the shadows the one-direction background refused (``deferred`` from
@@ -1359,15 +1395,54 @@ def _corner_pass(trans, cand, model, meas, deferred, st, drange, rej):
         k = np.array([c])
         sub = _Candidates(index=cand.index[k], centre=cand.centre[k], radius=cand.radius[k], area=cand.area[k],
                           shadows=cand.shadows, noise=cand.noise)
-        try:
-            trans[sl] = (saved / cm.bg).astype(trans.dtype)
-            sm, _ = _local_backgrounds(trans, None, sub, st)
-            sm.corner = (cm,)
-            smeas = _measure_edges_and_fit(trans, sm, sub, st)
-        finally:
-            trans[sl] = saved
+
+        def measure(bg):
+            try:
+                trans[sl] = (saved / bg).astype(trans.dtype)
+                sm_, _ = _local_backgrounds(trans, None, sub, st)
+                sm_.corner = (cm,)
+                return sm_, _measure_edges_and_fit(trans, sm_, sub, st)
+            finally:
+                trans[sl] = saved
+
+        sm, smeas = measure(cm.bg)
         if not _screen_fits(smeas, sub, sm, st, drange, rej, depth_ref=depth_ref, structure=False):
             continue
+        # the proximity rule against any shadow (also one merged with a band, which was no
+        # candidate): no pixels darker than segment_depth under the corner model within
+        # proximity_margin_px outside this shadow's threshold outline (about 1 px outside the
+        # edge; the ring starts at 2 px, where this shadow's own blurred edge is above that level)
+        fc = smeas.fits[0]
+        rf = float(np.sqrt(fc[2] * fc[3]))
+        rho = np.hypot(cm.xy[0] + cand.centre[c, 0] - fc[0], cm.xy[1] + cand.centre[c, 1] - fc[1])
+        ring = (rho > rf + 2.0) & (rho < rf + 1.0 + st.proximity_margin_px)
+        near = ring & (saved < cm.bg * (1.0 - st.segment_depth))
+        if np.count_nonzero(near) >= 3:
+            rej.add(where, a, "overlap", f"another shadow within {st.proximity_margin_px} px "
+                                         "(corner model)")
+            continue
+        # the corner model's own uncertainty, propagated: the centre measured again with the
+        # model moved by one sd along each principal direction of its parameters' covariance
+        lam, vec = np.linalg.eigh(cm.cov_q)
+        extra = np.zeros((2, 2))
+        for li, vi in zip(lam, vec.T):
+            if not li > 0:
+                continue
+            q = cm.q + np.sqrt(li) * vi
+            _, mi = measure(np.exp(_corner_design(q[:8], *cm.xy) @ q[8:]))
+            if mi.ok[0]:
+                dc = mi.fits[0, :2] - smeas.fits[0, :2]
+                extra += np.outer(dc, dc)
+        # and the model's misfit next to the shadow: the centre measured again with the
+        # background corrected by the inner ring's mean residual per sector (interpolated in angle)
+        sc = (np.arange(12) + 0.5) * (np.pi / 6) - np.pi
+        a_ = np.arctan2(cm.xy[1], cm.xy[0])
+        f = np.interp(a_, np.concatenate([sc - 2 * np.pi, sc, sc + 2 * np.pi]), np.tile(cm.sector_res, 3))
+        _, mi = measure(cm.bg * np.exp(-f))
+        if mi.ok[0]:
+            dc = mi.fits[0, :2] - smeas.fits[0, :2]
+            extra += np.outer(dc, dc)
+        meas.extra_cov[c] = extra
         for f in ("ok", "fits", "n_pts", "rms", "s2", "sums", "qmin", "edge_frac", "edge_shift"):
             getattr(meas, f)[c] = getattr(smeas, f)[0]
         meas.normals[c] = smeas.normals[0]
@@ -1393,6 +1468,7 @@ class _Measurement:
     edge_frac: np.ndarray   # fraction of edge points on a strong background edge
     n_fits: int
     edge_shift: np.ndarray  # (C, 2) centre minus the centre fitted without background-edge points
+    extra_cov: np.ndarray = None  # (C, 2, 2) added to the centre covariance (corner model's own)
     corner: set = None      # candidates measured with the corner model
 
 
@@ -1614,7 +1690,7 @@ def _measure_edges_and_fit(trans, model, cand, st):
         radius = np.where(ok, np.sqrt(np.abs(fits[:, 2] * fits[:, 3])), radius)
     return _Measurement(ok=ok, why=why, fits=fits, n_pts=n_pts, rms=rms, s2=s2, normals=normals, sums=sums,
                         qmin=qmin, edge_frac=edge_frac, n_fits=n_fits, edge_shift=shift,
-                        corner=set())
+                        corner=set(), extra_cov=np.zeros((nc, 2, 2)))
 
 
 # --------------------------------------------------------------------------- stage 8-9: rejection, uncertainty
@@ -1689,7 +1765,8 @@ def _centre_uncertainty(accepted, meas, model, st):
     """Centre covariance ``f s^2 (sum n n^T)^-1`` per accepted shadow (s the edge RMS,
     f = max(1, n / (pi r)) for neighbouring rays sharing pixels), plus
     ``background_edge_sigma_px`` in quadrature across the structure for shadows whose edge
-    crosses a background edge. Returns a list of (c, cov, on_edge)."""
+    crosses a background edge, plus ``meas.extra_cov`` (the corner model's propagated
+    uncertainty). Returns a list of (c, cov, on_edge)."""
     out = []
     if not accepted:
         return out
@@ -1706,7 +1783,7 @@ def _centre_uncertainty(accepted, meas, model, st):
         if det_[j] <= 0:
             out.append((c, np.full((2, 2), np.nan), False))
             continue
-        cov = cov_all[j]
+        cov = cov_all[j] + meas.extra_cov[c]
         on_edge = bool(on_all[j])
         if on_edge and st.background_edge_clusters and meas.normals[c] is not None:
             # edge points on a background edge (band or step) err together: each run of them is
