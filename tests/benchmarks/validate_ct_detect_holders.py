@@ -17,7 +17,7 @@ z = error / reported sd (ours only). Speed per frame on the same frames.
 Shadows the corner background model measured (two straight steps, a plate or holder corner)
 are listed with their errors and z-scores.
 
-Usage: .venv/bin/python tests/benchmarks/validate_ct_detect_holders.py [--frames N]
+Usage: .venv/bin/python tests/benchmarks/validate_ct_detect_holders.py [--frames N] [--seed S] [--no-corner]
 Prints a table, then ONE JSON line.
 """
 
@@ -120,7 +120,9 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=8)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--no-corner", action="store_true", help="without the corner background model (before)")
     args = ap.parse_args()
+    st = detect.DetectionSettings(max_corner_misfit=None) if args.no_corner else None
     fs = frames(args.frames, args.seed)
     dr = (3e-3 * SDD / (0.364 + 0.045) / DET.pixel_pitch_m, 3e-3 * SDD / (0.364 - 0.045) / DET.pixel_pitch_m)
     res = {}
@@ -130,7 +132,7 @@ def main():
                                      "n_frames": 0} for m in ("ours", "textbook")})
         encoding = "mono16" if img.dtype == np.uint16 else "mono8"
         t = time.perf_counter()
-        det = detect.detect_spheres(img, encoding=encoding, diameter_px_range=dr)
+        det = detect.detect_spheres(img, encoding=encoding, diameter_px_range=dr, settings=st)
         r["ours"]["t"] += time.perf_counter() - t
         t = time.perf_counter()
         tb = textbook(img, dr[1])

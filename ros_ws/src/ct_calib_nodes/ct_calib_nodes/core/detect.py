@@ -59,6 +59,10 @@ Pipeline (one named function per stage; numbers are the defaults of
    (edge RMS), ``not_a_sphere_size``, ``background_structure`` (the background
    also changes along its main structure, > 2x the frame's median: a corner
    of two steps; or the local model misfits > 3x the frame's median).
+   6b. ``_corner_pass``: those shadows are measured again on a corner model
+   (plane + two straight blurred ramps + their product, ``_fit_corner``) if it
+   fits the annulus within ``max_corner_misfit`` x the noise there; its own
+   uncertainty is propagated to the centre (doc/ct_detect.md).
 7. Centre uncertainty, ``_centre_uncertainty``: ``f sigma_edge^2 (sum_i n_i
    n_i^T)^-1`` with ``n_i`` the edge normals, ``sigma_edge`` the fit RMS
    (degrees-of-freedom corrected) and ``f = max(1, n / (pi r))`` for the
@@ -213,6 +217,10 @@ class DetectionSettings:
     background_edge_clusters : float
         Weight of the cluster-robust term (each run of edge points on the background edge
         one cluster of the sandwich covariance); 0 disables.
+    max_corner_misfit : float or None
+        Largest rms misfit of the corner background model on the annulus, in units of the
+        pixel noise there, for a ``background_structure`` shadow to be measured on it
+        (``_corner_pass``); None disables the corner model.
     background_edge_sigma_px : float
         A fixed extra sd [px] across the structure for those shadows (0 = off; the former
         default 0.012 px was calibrated on the simulator's carbon tube).
@@ -1195,7 +1203,7 @@ def _background_at(model, x, y):
 
 @dataclass
 class _CornerModel:
-    """Background of one shadow at a corner of two straight steps (see :func:`_fit_corner`)."""
+    """Background of one shadow at a corner of two straight steps or ramps (see :func:`_fit_corner`)."""
     ok: bool
     detail: str
     y0: int = 0             # window origin (row, col) in the image
@@ -1244,11 +1252,11 @@ def _vp_residuals(P, x, y, l):
     return np.einsum("mni,mi->mn", A, coef) - l
 
 
-def _lm_lines(p0, x, y, l, iters=30, give_up=np.inf):
-    """Levenberg-Marquardt on the six line parameters: forward-difference Jacobian and four
+def _lm_lines(p0, x, y, l, iters=25, give_up=np.inf):
+    """Levenberg-Marquardt on the eight line parameters: forward-difference Jacobian and four
     damping factors per iteration, each evaluated as one batch; stops when the cost falls by
-    less than 1e-6 relative, or after 10 iterations if the rms residual is still above
-    ``give_up`` (the model cannot pass its check)."""
+    less than 1e-4 relative, or after 8 iterations if the rms residual is still above
+    ``give_up`` (the model will not pass its check)."""
     h = np.array([1e-4, 1e-3, 1e-3, 1e-3, 1e-4, 1e-3, 1e-3, 1e-3])
     p = np.asarray(p0, dtype=np.float64)
     r = _vp_residuals(p[None], x, y, l)[0]
@@ -1270,24 +1278,26 @@ def _lm_lines(p0, x, y, l, iters=30, give_up=np.inf):
             if lam > 1e8:
                 break
             continue
-        done = cost - costs[j] < 1e-6 * cost
+        done = cost - costs[j] < 1e-4 * cost
         p, r, cost, lam = p + steps[j], R[j], float(costs[j]), max(lam * damp[j] * 0.3, 1e-7)
-        if done or (_ >= 10 and np.sqrt(cost / l.size) > give_up):
+        if done or (_ >= 8 and np.sqrt(cost / l.size) > give_up):
             break
     return p
 
 
 def _fit_corner(trans, cand, c, theta1, st):
-    """Log-background of candidate ``c`` as a plane plus two blurred straight steps and their
-    product (a plate or holder corner: the region inside both steps, with any blur or ramp width
-    per step), fitted to the annulus between ``radius + exclusion_px`` and ``2 radius +
-    exclusion_px`` (other shadows masked) by variable projection: the six line parameters by
-    least squares, the six amplitudes linearly for each. The steps' lines are started from the
-    strongest gradient across ``theta1`` (the one-direction model's structure) and the
-    structure tensor of the gradients away from that step.
+    """Log-background of candidate ``c`` as a plane plus two straight blurred ramps (steps of
+    any width, :func:`_corner_design`) and their product (a plate or holder corner: the region
+    inside both), fitted to the annulus between ``radius + exclusion_px`` and ``2 radius +
+    exclusion_px`` (other shadows masked) by variable projection: the eight line parameters by
+    :func:`_lm_lines` on at most 200 evenly spread samples, the six amplitudes linearly for
+    each. The lines are started from the strongest gradient across ``theta1`` (the
+    one-direction model's structure) and the structure tensor of the gradients away from it.
 
-    The line parameters by :func:`_lm_lines`. The model's own check: the rms misfit on the annulus against the pixel noise there (from
-    differences of neighbouring annulus pixels, robust); returned in ``ratio``."""
+    The model's own check: the rms misfit on all annulus samples against the pixel noise there
+    (robust, from differences of neighbouring annulus pixels), returned in ``ratio``. Also
+    returned: the covariance of all 14 parameters (s^2 (J^T J)^-1) and the mean residual of the
+    inner ring per sector, which :func:`_corner_pass` propagates to the centre."""
     rows, cols = trans.shape
     cx, cy = cand.centre[c]
     r = float(cand.radius[c])
@@ -1330,7 +1340,7 @@ def _fit_corner(trans, cand, c, theta1, st):
     xf, yf, lf = xs[::step], ys[::step], ls[::step]
 
     try:
-        lim = np.inf if st.max_corner_misfit is None else 2.0 * st.max_corner_misfit * noise
+        lim = np.inf if st.max_corner_misfit is None else 1.3 * st.max_corner_misfit * noise
         p = _lm_lines([theta1, d1, -0.4, 0.0, theta2, d2, -0.4, 0.0], xf, yf, lf, give_up=lim)
     except np.linalg.LinAlgError as e:      # pragma: no cover - defensive
         return _CornerModel(False, f"corner fit failed: {e}")
@@ -1348,7 +1358,7 @@ def _fit_corner(trans, cand, c, theta1, st):
     logb = _corner_design(p, X.astype(np.float64), Y.astype(np.float64)) @ coef
     gyb, gxb = np.gradient(logb)
     grad = 4.0 * np.hypot(gxb, gyb)
-    # the transition zone of each step (2 widths + 1 px either side of its line) counts as a
+    # the transition zone of each ramp (half its width + 2 blur sd + 1 px each side) counts as a
     # background edge wherever the step is more than 10 noise sd high: edge points there carry
     # the model's error near the lines, which the background-edge terms (cluster-robust and
     # refit-without) take from the data
@@ -1372,9 +1382,14 @@ def _corner_pass(trans, cand, model, meas, deferred, st, drange, rej):
     :func:`_screen_fits`) with the corner model (:func:`_fit_corner`): where its misfit on the
     annulus is within ``max_corner_misfit`` x the noise there, the window is divided by it, the
     usual local background (now of a flat window), edges and fit run on it, and the ordinary
-    screens (size, shape, contrast, darkness) apply; the measurement replaces the candidate's
-    row of ``meas``. Returns the accepted candidates; the others are refused as
-    ``background_structure`` with both models' figures."""
+    screens (size, shape, contrast, darkness) apply, and the proximity rule against any pixel
+    darker than ``segment_depth`` under the model (a neighbour merged with a band was no
+    candidate). The measurement replaces the candidate's row of ``meas``; its covariance gets
+    the corner model's own uncertainty (``meas.extra_cov``): the centre measured again with the
+    model moved by one sd along each principal direction of its parameters' covariance, and
+    with the background corrected by the inner ring's sector residuals (the misfit next to the
+    shadow), each change's outer product added. Returns the accepted candidates; refused ones
+    are ``background_structure`` with both models' figures (or ``overlap`` etc.)."""
     out = []
     depth_all = -np.log(np.clip(meas.qmin, 1e-6, None))
     depth_ref = float(np.median(depth_all[meas.ok])) if np.any(meas.ok) else np.nan
@@ -1397,6 +1412,8 @@ def _corner_pass(trans, cand, model, meas, deferred, st, drange, rej):
                           shadows=cand.shadows, noise=cand.noise)
 
         def measure(bg):
+            if not (np.all(np.isfinite(bg)) and np.min(bg) > 1e-6):
+                return None, None          # a perturbed model that overflows: not measurable
             try:
                 trans[sl] = (saved / bg).astype(trans.dtype)
                 sm_, _ = _local_backgrounds(trans, None, sub, st)
@@ -1406,6 +1423,9 @@ def _corner_pass(trans, cand, model, meas, deferred, st, drange, rej):
                 trans[sl] = saved
 
         sm, smeas = measure(cm.bg)
+        if smeas is None:
+            rej.add(where, a, "background_structure", f"{detail}; corner model of two steps: not finite")
+            continue
         if not _screen_fits(smeas, sub, sm, st, drange, rej, depth_ref=depth_ref, structure=False):
             continue
         # the proximity rule against any shadow (also one merged with a band, which was no
@@ -1423,23 +1443,36 @@ def _corner_pass(trans, cand, model, meas, deferred, st, drange, rej):
             continue
         # the corner model's own uncertainty, propagated: the centre measured again with the
         # model moved by one sd along each principal direction of its parameters' covariance
+        # (a direction whose one-sd move gives no measurable shadow: the model is not determined
+        # well enough to measure on, the shadow stays refused)
         lam, vec = np.linalg.eigh(cm.cov_q)
         extra = np.zeros((2, 2))
+        undetermined = not np.all(np.isfinite(lam))
         for li, vi in zip(lam, vec.T):
+            if undetermined:
+                break
             if not li > 0:
                 continue
             q = cm.q + np.sqrt(li) * vi
-            _, mi = measure(np.exp(_corner_design(q[:8], *cm.xy) @ q[8:]))
-            if mi.ok[0]:
-                dc = mi.fits[0, :2] - smeas.fits[0, :2]
-                extra += np.outer(dc, dc)
+            with np.errstate(over="ignore", invalid="ignore"):
+                bq = np.exp(_corner_design(q[:8], *cm.xy) @ q[8:])
+            _, mi = measure(bq)
+            if mi is None or not mi.ok[0]:
+                undetermined = True
+                break
+            dc = mi.fits[0, :2] - smeas.fits[0, :2]
+            extra += np.outer(dc, dc)
+        if undetermined:
+            rej.add(where, a, "background_structure", f"{detail}; corner model of two steps: not determined "
+                                                      "(a one-sd change of its parameters leaves no measurable shadow)")
+            continue
         # and the model's misfit next to the shadow: the centre measured again with the
         # background corrected by the inner ring's mean residual per sector (interpolated in angle)
         sc = (np.arange(12) + 0.5) * (np.pi / 6) - np.pi
         a_ = np.arctan2(cm.xy[1], cm.xy[0])
         f = np.interp(a_, np.concatenate([sc - 2 * np.pi, sc, sc + 2 * np.pi]), np.tile(cm.sector_res, 3))
         _, mi = measure(cm.bg * np.exp(-f))
-        if mi.ok[0]:
+        if mi is not None and mi.ok[0]:
             dc = mi.fits[0, :2] - smeas.fits[0, :2]
             extra += np.outer(dc, dc)
         meas.extra_cov[c] = extra
