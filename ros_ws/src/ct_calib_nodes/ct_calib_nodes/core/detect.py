@@ -1255,7 +1255,7 @@ def _vp_residuals(P, x, y, l):
 def _lm_lines(p0, x, y, l, iters=25, give_up=np.inf):
     """Levenberg-Marquardt on the eight line parameters: forward-difference Jacobian and four
     damping factors per iteration, each evaluated as one batch; stops when the cost falls by
-    less than 1e-4 relative, or after 8 iterations if the rms residual is still above
+    less than 1e-4 relative, or after 5 iterations if the rms residual is still above
     ``give_up`` (the model will not pass its check)."""
     h = np.array([1e-4, 1e-3, 1e-3, 1e-3, 1e-4, 1e-3, 1e-3, 1e-3])
     p = np.asarray(p0, dtype=np.float64)
@@ -1280,7 +1280,7 @@ def _lm_lines(p0, x, y, l, iters=25, give_up=np.inf):
             continue
         done = cost - costs[j] < 1e-4 * cost
         p, r, cost, lam = p + steps[j], R[j], float(costs[j]), max(lam * damp[j] * 0.3, 1e-7)
-        if done or (_ >= 8 and np.sqrt(cost / l.size) > give_up):
+        if done or (_ >= 4 and np.sqrt(cost / l.size) > give_up):
             break
     return p
 
@@ -1349,6 +1349,8 @@ def _fit_corner(trans, cand, c, theta1, st):
     res = A @ coef - ls
     rms = float(np.sqrt(np.mean(res ** 2)))
     ratio = rms / max(noise, 1e-9)
+    if st.max_corner_misfit is not None and not ratio <= st.max_corner_misfit:
+        return _CornerModel(True, "", ratio=ratio, n=n)          # refused by the caller: no more work
     # the misfit next to the shadow: mean residual of the inner ring (4 px) in 12 sectors
     ang = np.arctan2(ys, xs)
     sec = np.floor((ang + np.pi) / (2 * np.pi) * 12).astype(int) % 12
