@@ -14,8 +14,10 @@ proximity rule), inside the field stop by their radius + 6 px. found = expected 
 matched within 0.5 px; false = accepted detections with no sphere in view within 0.5 px. Accuracy vs the
 truth (renderer without the ellipse-centre bias, so truth = ellipse centre), robust
 z = error / reported sd (ours only). Speed per frame on the same frames.
+Shadows the corner background model measured (two straight steps, a plate or holder corner)
+are listed with their errors and z-scores.
 
-Usage: .venv/bin/python tests/benchmarks/validate_ct_detect_holders.py [--frames N]
+Usage: .venv/bin/python tests/benchmarks/validate_ct_detect_holders.py [--frames N] [--seed S] [--no-corner]
 Prints a table, then ONE JSON line.
 """
 
@@ -118,7 +120,9 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=8)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--no-corner", action="store_true", help="without the corner background model (before)")
     args = ap.parse_args()
+    st = detect.DetectionSettings(max_corner_misfit=None) if args.no_corner else None
     fs = frames(args.frames, args.seed)
     dr = (3e-3 * SDD / (0.364 + 0.045) / DET.pixel_pitch_m, 3e-3 * SDD / (0.364 - 0.045) / DET.pixel_pitch_m)
     res = {}
@@ -128,7 +132,7 @@ def main():
                                      "n_frames": 0} for m in ("ours", "textbook")})
         encoding = "mono16" if img.dtype == np.uint16 else "mono8"
         t = time.perf_counter()
-        det = detect.detect_spheres(img, encoding=encoding, diameter_px_range=dr)
+        det = detect.detect_spheres(img, encoding=encoding, diameter_px_range=dr, settings=st)
         r["ours"]["t"] += time.perf_counter() - t
         t = time.perf_counter()
         tb = textbook(img, dr[1])
@@ -145,6 +149,12 @@ def main():
             why = det.rejected.reason[int(np.argmin(dd))] if len(dd) and dd.min() < tr.semi_axes_px[i, 0] else \
                 "no candidate"
             miss[why] = miss.get(why, 0) + 1
+        if len(det) and det.on_corner.any():    # the shadows measured with the corner model
+            f, ne, fa, e, z = score(det.centre_px[det.on_corner], det.centre_std_px[det.on_corner], tr)
+            q = r["ours"].setdefault("corner", {"n": 0, "e": [], "z": []})
+            q["n"] += int(det.on_corner.sum())
+            q["e"].append(e)
+            q["z"].append(z)
         for m, (c, s) in (("ours", (det.centre_px, det.centre_std_px)), ("textbook", (tb, None))):
             f, ne, fa, e, z = score(c, s, tr)
             q = r[m]
@@ -171,12 +181,18 @@ def main():
                    "ms_per_frame": round(1e3 * q["t"] / q["n_frames"], 1)}
             if "missed_by_reason" in q:
                 row["missed_by_reason"] = q["missed_by_reason"]
+            if m == "ours":
+                k = q.get("corner", {"n": 0, "e": [np.zeros((0, 2))], "z": [np.zeros((0, 2))]})
+                ce, cz = np.vstack(k["e"]), np.vstack(k["z"])
+                row["corner_model"] = {"n": k["n"], "matched": len(ce), "err_px": ce.round(4).tolist(),
+                                       "z": cz.round(2).tolist()}
             summary[f"{key}_{m}"] = row
             print(f"{key:14s} {m:9s} {q['found']:4d}/{q['exp']:<4d} {q['all_frames']:2d}/{q['n_frames']:<2d} "
                   f"{q['false']:5d} {str(row['bias_px']):>17s} {str(row['sd_px']):>15s} "
                   f"{str(row['robust_z']):>11s} {row['ms_per_frame']:6.1f}")
     for key, per in res.items():
-        print(f"{key}: ours missed {per['ours'].get('missed_by_reason', {})}")
+        print(f"{key}: ours missed {per['ours'].get('missed_by_reason', {})}; corner model: "
+              f"{summary[key + '_ours']['corner_model']}")
     summary["cpu_count"] = os.cpu_count()
     print(json.dumps(summary))
 

@@ -59,6 +59,10 @@ Pipeline (one named function per stage; numbers are the defaults of
    (edge RMS), ``not_a_sphere_size``, ``background_structure`` (the background
    also changes along its main structure, > 2x the frame's median: a corner
    of two steps; or the local model misfits > 3x the frame's median).
+   6b. ``_corner_pass``: those shadows are measured again on a corner model
+   (plane + two straight blurred ramps + their product, ``_fit_corner``) if it
+   fits the annulus within ``max_corner_misfit`` x the noise there; its own
+   uncertainty is propagated to the centre (doc/ct_detect.md).
 7. Centre uncertainty, ``_centre_uncertainty``: ``f sigma_edge^2 (sum_i n_i
    n_i^T)^-1`` with ``n_i`` the edge normals, ``sigma_edge`` the fit RMS
    (degrees-of-freedom corrected) and ``f = max(1, n / (pi r))`` for the
@@ -213,6 +217,10 @@ class DetectionSettings:
     background_edge_clusters : float
         Weight of the cluster-robust term (each run of edge points on the background edge
         one cluster of the sandwich covariance); 0 disables.
+    max_corner_misfit : float or None
+        Largest rms misfit of the corner background model on the annulus, in units of the
+        pixel noise there, for a ``background_structure`` shadow to be measured on it
+        (``_corner_pass``); None disables the corner model.
     background_edge_sigma_px : float
         A fixed extra sd [px] across the structure for those shadows (0 = off; the former
         default 0.012 px was calibrated on the simulator's carbon tube).
@@ -246,6 +254,7 @@ class DetectionSettings:
     background_edge_sigma_px: float = 0.0
     background_edge_clusters: float = 1.0
     background_edge_refit: bool = True
+    max_corner_misfit: float | None = 1.5
 
     def __post_init__(self):
         if self.ellipse_fitter not in ("fitEllipse", "fitEllipseAMS", "fitEllipseDirect", "geometric"):
@@ -336,6 +345,9 @@ class FrameDetections:
         Hot/dead pixels repaired within 1.5 semi-major axes + 4 px of each centre.
     hot_pixels_px : ndarray of shape (K, 2)
         (col, row) of every repaired hot/dead pixel near a shadow.
+    on_corner : ndarray of shape (M,), bool
+        Measured with the corner background model (two straight steps; the one-direction
+        model did not hold round this shadow).
     """
 
     centre_px: np.ndarray
@@ -354,6 +366,7 @@ class FrameDetections:
     nfev: int = 0
     n_hot_pixels: np.ndarray | None = None
     hot_pixels_px: np.ndarray | None = None
+    on_corner: np.ndarray | None = None
 
     def __len__(self):
         return self.centre_px.shape[0]
@@ -698,7 +711,10 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
     clock.lap("local_background")                                                         # hot pixels
     meas = _measure_edges_and_fit(trans, model, cand, st)                                 # 5 edges, 6 fit
     clock.lap("edges_fit")
-    accepted = _screen_fits(meas, cand, model, st, drange, rej)                           # 7 rejection
+    deferred = []
+    accepted = _screen_fits(meas, cand, model, st, drange, rej, deferred=deferred)        # 7 rejection
+    if deferred:                                                                          # 7b corners
+        accepted = sorted(accepted + _corner_pass(trans, cand, model, meas, deferred, st, drange, rej))
     clock.lap("rejection")
     accepted = _centre_uncertainty(accepted, meas, model, st)                             # 8 uncertainty
     out = _assemble(accepted, rej, meas.n_fits, sdd_px, principal_point_px, trans.shape, hot, "",
@@ -1035,6 +1051,7 @@ class _LocalBackground:
     structure: np.ndarray   # (C,) rms misfit of the model on the background samples / noise
     coherence: np.ndarray   # (C,)
     minor: np.ndarray       # (C,) gradient energy along the structure / the noise's
+    corner: tuple | None = None  # per candidate a _CornerModel whose grad marks background edges
 
 
 def _local_backgrounds(trans, bg, cand, st):
@@ -1182,6 +1199,294 @@ def _background_at(model, x, y):
     return a_u + b_u * v, u
 
 
+# --------------------------------------------------------------------------- stage 4b: corners
+
+@dataclass
+class _CornerModel:
+    """Background of one shadow at a corner of two straight steps or ramps (see :func:`_fit_corner`)."""
+    ok: bool
+    detail: str
+    y0: int = 0             # window origin (row, col) in the image
+    x0: int = 0
+    bg: np.ndarray = None   # (h, w) background B in the window
+    grad: np.ndarray = None  # (h, w) relative change of B over 4 px (|grad log B| * 4); 1e3 in step zones
+    ratio: float = np.nan   # rms misfit in the annulus / pixel noise there
+    n: int = 0              # annulus samples used
+    q: np.ndarray = None    # (14,) line parameters and amplitudes
+    cov_q: np.ndarray = None  # (14, 14) their covariance from the annulus fit
+    xy: tuple = None        # window coordinates relative to the candidate centre
+    sector_res: np.ndarray = None  # (12,) mean log residual of the inner annulus ring per 30 deg sector
+
+
+def _corner_design(p, x, y):
+    """Columns [1, x, y, S1, S2, S1 S2] of the log-background for line parameters
+    p = (theta1, d1, log sigma1, log W1, theta2, d2, log sigma2, log W2) (or a batch of them,
+    shape (m, 8): the result gets a leading axis m). S_k is a linear ramp of width W_k across
+    line k (a plate's side face seen obliquely: its thickness, hence its log-attenuation, grows
+    linearly) blurred by a Gaussian of sd sigma_k; W -> 0 gives a blurred step."""
+    from scipy.special import ndtr  # noqa: PLC0415  (only corner shadows need it)
+    p = np.asarray(p, dtype=np.float64)
+    pb = p.reshape(-1, 8)[:, :, None]
+    shape = np.shape(x)
+    x, y = np.ravel(x), np.ravel(y)
+    s = []
+    for k in (0, 4):
+        sig = np.exp(np.clip(pb[:, k + 2], -3.0, 3.0))           # blur 0.05 to 20 px
+        wid = np.exp(np.clip(pb[:, k + 3], -3.0, 4.0))           # ramp 0.05 to 55 px
+        t = np.cos(pb[:, k]) * x + np.sin(pb[:, k]) * y - pb[:, k + 1]
+
+        def g(u):               # integral of the blurred step
+            z = u / sig
+            return u * ndtr(z) + sig * np.exp(-0.5 * z * z) / np.sqrt(2 * np.pi)
+        s.append((g(t + 0.5 * wid) - g(t - 0.5 * wid)) / wid)
+    one = np.ones_like(s[0])
+    A = np.stack([one, one * x, one * y, s[0], s[1], s[0] * s[1]], axis=-1).reshape((-1,) + shape + (6,))
+    return A if p.ndim == 2 else A[0]
+
+
+def _vp_residuals(P, x, y, l):
+    """Residuals (m, n) of the variable-projection fit for a batch of line parameters P (m, 6)."""
+    A = _corner_design(P, x, y)
+    ata = np.einsum("mni,mnj->mij", A, A) + 1e-12 * np.eye(6)
+    coef = np.linalg.solve(ata, np.einsum("mni,n->mi", A, l)[..., None])[..., 0]
+    return np.einsum("mni,mi->mn", A, coef) - l
+
+
+def _lm_lines(p0, x, y, l, iters=25, give_up=np.inf):
+    """Levenberg-Marquardt on the eight line parameters: forward-difference Jacobian and four
+    damping factors per iteration, each evaluated as one batch; stops when the cost falls by
+    less than 1e-4 relative, or after 5 iterations if the rms residual is still above
+    ``give_up`` (the model will not pass its check)."""
+    h = np.array([1e-4, 1e-3, 1e-3, 1e-3, 1e-4, 1e-3, 1e-3, 1e-3])
+    p = np.asarray(p0, dtype=np.float64)
+    r = _vp_residuals(p[None], x, y, l)[0]
+    cost = float(r @ r)
+    lam = 1e-3
+    damp = np.array([0.1, 1.0, 10.0, 100.0])
+    for _ in range(iters):
+        J = (_vp_residuals(p[None] + np.diag(h), x, y, l) - r).T / h        # (n, 6)
+        H = J.T @ J
+        g = J.T @ r
+        D = np.diag(np.maximum(np.diag(H), 1e-12))
+        steps = np.linalg.solve(H[None] + (lam * damp)[:, None, None] * D[None] + 1e-12 * np.eye(p.size),
+                                np.broadcast_to(-g, (4, p.size))[..., None])[..., 0]
+        R = _vp_residuals(p[None] + steps, x, y, l)
+        costs = np.einsum("mn,mn->m", R, R)
+        j = int(np.argmin(costs))
+        if not costs[j] < cost:
+            lam *= 1000.0
+            if lam > 1e8:
+                break
+            continue
+        done = cost - costs[j] < 1e-4 * cost
+        p, r, cost, lam = p + steps[j], R[j], float(costs[j]), max(lam * damp[j] * 0.3, 1e-7)
+        if done or (_ >= 4 and np.sqrt(cost / l.size) > give_up):
+            break
+    return p
+
+
+def _fit_corner(trans, cand, c, theta1, st):
+    """Log-background of candidate ``c`` as a plane plus two straight blurred ramps (steps of
+    any width, :func:`_corner_design`) and their product (a plate or holder corner: the region
+    inside both), fitted to the annulus between ``radius + exclusion_px`` and ``2 radius +
+    exclusion_px`` (other shadows masked) by variable projection: the eight line parameters by
+    :func:`_lm_lines` on at most 200 evenly spread samples, the six amplitudes linearly for
+    each. The lines are started from the strongest gradient across ``theta1`` (the
+    one-direction model's structure) and the structure tensor of the gradients away from it.
+
+    The model's own check: the rms misfit on all annulus samples against the pixel noise there
+    (robust, from differences of neighbouring annulus pixels), returned in ``ratio``. Also
+    returned: the covariance of all 14 parameters (s^2 (J^T J)^-1) and the mean residual of the
+    inner ring per sector, which :func:`_corner_pass` propagates to the centre."""
+    rows, cols = trans.shape
+    cx, cy = cand.centre[c]
+    r = float(cand.radius[c])
+    rin = r + st.exclusion_px
+    rout = rin + max(r, 8.0)
+    R = int(np.ceil(rout)) + 1
+    y0, x0 = max(int(round(cy)) - R, 0), max(int(round(cx)) - R, 0)
+    y1, x1 = min(int(round(cy)) + R + 1, rows), min(int(round(cx)) + R + 1, cols)
+    win = trans[y0:y1, x0:x1].astype(np.float64)
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    X, Y = xx - cx, yy - cy
+    rho = np.hypot(X, Y)
+    use = (rho > rin) & (rho < rout) & (cand.shadows[y0:y1, x0:x1] == 0) & (win > 1e-6)
+    n = int(use.sum())
+    if n < 100:
+        return _CornerModel(False, f"only {n} background samples round the shadow")
+    L = np.log(np.where(win > 1e-6, win, 1e-6))
+    # noise in the annulus: neighbouring-pixel differences of log T, both pixels in the annulus
+    dh = (L[:, 1:] - L[:, :-1])[use[:, 1:] & use[:, :-1]]
+    dv = (L[1:, :] - L[:-1, :])[use[1:, :] & use[:-1, :]]
+    d = np.concatenate([dh, dv])
+    noise = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2.0)
+    xs, ys, ls = X[use], Y[use], L[use]
+    # start: step 1 across theta1 where the gradient across it is strongest
+    gy, gx = np.gradient(L)
+    n1 = np.array([np.cos(theta1), np.sin(theta1)])
+    g1 = np.abs(gx * n1[0] + gy * n1[1]) * use
+    u1 = X * n1[0] + Y * n1[1]
+    d1 = float(u1.ravel()[np.argmax(g1)])
+    far = use & (np.abs(u1 - d1) > 4.0)
+    jxx, jyy, jxy = np.sum(gx * gx * far), np.sum(gy * gy * far), np.sum(gx * gy * far)
+    theta2 = 0.5 * np.arctan2(2 * jxy, jxx - jyy)
+    n2 = np.array([np.cos(theta2), np.sin(theta2)])
+    g2 = np.abs(gx * n2[0] + gy * n2[1]) * far
+    d2 = float((X * n2[0] + Y * n2[1]).ravel()[np.argmax(g2)])
+
+    # the line parameters from at most 200 evenly spread samples (speed; the amplitudes and the
+    # misfit below use them all)
+    step = max(1, int(np.ceil(xs.size / 200)))
+    xf, yf, lf = xs[::step], ys[::step], ls[::step]
+
+    try:
+        lim = np.inf if st.max_corner_misfit is None else 1.3 * st.max_corner_misfit * noise
+        p = _lm_lines([theta1, d1, -0.4, 0.0, theta2, d2, -0.4, 0.0], xf, yf, lf, give_up=lim)
+    except np.linalg.LinAlgError as e:      # pragma: no cover - defensive
+        return _CornerModel(False, f"corner fit failed: {e}")
+    A = _corner_design(p, xs, ys)
+    coef, *_ = np.linalg.lstsq(A, ls, rcond=None)
+    res = A @ coef - ls
+    rms = float(np.sqrt(np.mean(res ** 2)))
+    ratio = rms / max(noise, 1e-9)
+    if st.max_corner_misfit is not None and not ratio <= st.max_corner_misfit:
+        return _CornerModel(True, "", ratio=ratio, n=n)          # refused by the caller: no more work
+    # the misfit next to the shadow: mean residual of the inner ring (4 px) in 12 sectors
+    ang = np.arctan2(ys, xs)
+    sec = np.floor((ang + np.pi) / (2 * np.pi) * 12).astype(int) % 12
+    inner = np.hypot(xs, ys) < rin + 4.0
+    sector_res = np.array([float(np.mean(res[(sec == k) & inner])) if np.any((sec == k) & inner) else 0.0
+                           for k in range(12)])
+    logb = _corner_design(p, X.astype(np.float64), Y.astype(np.float64)) @ coef
+    gyb, gxb = np.gradient(logb)
+    grad = 4.0 * np.hypot(gxb, gyb)
+    # the transition zone of each ramp (half its width + 2 blur sd + 1 px each side) counts as a
+    # background edge wherever the step is more than 10 noise sd high: edge points there carry
+    # the model's error near the lines, which the background-edge terms (cluster-robust and
+    # refit-without) take from the data
+    for k, (amp1, amp2) in enumerate(((coef[3], coef[3] + coef[5]), (coef[4], coef[4] + coef[5]))):
+        if max(abs(amp1), abs(amp2)) > 10.0 * noise:
+            j = 4 * k
+            w = 2.0 * np.exp(np.clip(p[j + 2], -3.0, 3.0)) + 0.5 * np.exp(np.clip(p[j + 3], -3.0, 4.0))
+            zone = np.abs(np.cos(p[j]) * X + np.sin(p[j]) * Y - p[j + 1]) < w + 1.0
+            grad = np.where(zone, np.maximum(grad, 1e3), grad)
+    # covariance of all twelve parameters: s^2 (J^T J)^-1, J the Jacobian of the log-model on
+    # every annulus sample (the amplitudes' columns are the design itself)
+    h = np.array([1e-4, 1e-3, 1e-3, 1e-3, 1e-4, 1e-3, 1e-3, 1e-3])
+    jn = ((_corner_design(p[None] + np.diag(h), xs, ys) @ coef) - (A @ coef)[None]) / h[:, None]
+    J = np.column_stack([jn.T, A])
+    cov_q = rms ** 2 * np.linalg.pinv(J.T @ J)
+    return _CornerModel(True, "", y0, x0, np.exp(logb), grad, ratio, n, np.concatenate([p, coef]), cov_q,
+                        (X.astype(np.float64), Y.astype(np.float64)), sector_res)
+
+def _corner_pass(trans, cand, model, meas, deferred, st, drange, rej):
+    """Measure the shadows the one-direction background refused (``deferred`` from
+    :func:`_screen_fits`) with the corner model (:func:`_fit_corner`): where its misfit on the
+    annulus is within ``max_corner_misfit`` x the noise there, the window is divided by it, the
+    usual local background (now of a flat window), edges and fit run on it, and the ordinary
+    screens (size, shape, contrast, darkness) apply, and the proximity rule against any pixel
+    darker than ``segment_depth`` under the model (a neighbour merged with a band was no
+    candidate). The measurement replaces the candidate's row of ``meas``; its covariance gets
+    the corner model's own uncertainty (``meas.extra_cov``): the centre measured again with the
+    model moved by one sd along each principal direction of its parameters' covariance, and
+    with the background corrected by the inner ring's sector residuals (the misfit next to the
+    shadow), each change's outer product added. Returns the accepted candidates; refused ones
+    are ``background_structure`` with both models' figures (or ``overlap`` etc.)."""
+    out = []
+    depth_all = -np.log(np.clip(meas.qmin, 1e-6, None))
+    depth_ref = float(np.median(depth_all[meas.ok])) if np.any(meas.ok) else np.nan
+    for c, where, a, detail in deferred:
+        if st.max_corner_misfit is None:
+            rej.add(where, a, "background_structure", detail)
+            continue
+        theta1 = float(np.arctan2(model.eu[c, 1], model.eu[c, 0]))
+        cm = _fit_corner(trans, cand, c, theta1, st)
+        if not cm.ok or not cm.ratio <= st.max_corner_misfit:
+            why = cm.detail if not cm.ok else (f"misfit {cm.ratio:.2f} x the annulus noise > "
+                                               f"{st.max_corner_misfit}")
+            rej.add(where, a, "background_structure", f"{detail}; corner model of two steps: {why}")
+            continue
+        h, w = cm.bg.shape
+        sl = (slice(cm.y0, cm.y0 + h), slice(cm.x0, cm.x0 + w))
+        saved = trans[sl].copy()
+        k = np.array([c])
+        sub = _Candidates(index=cand.index[k], centre=cand.centre[k], radius=cand.radius[k], area=cand.area[k],
+                          shadows=cand.shadows, noise=cand.noise)
+
+        def measure(bg):
+            if not (np.all(np.isfinite(bg)) and np.min(bg) > 1e-6):
+                return None, None          # a perturbed model that overflows: not measurable
+            try:
+                trans[sl] = (saved / bg).astype(trans.dtype)
+                sm_, _ = _local_backgrounds(trans, None, sub, st)
+                sm_.corner = (cm,)
+                return sm_, _measure_edges_and_fit(trans, sm_, sub, st)
+            finally:
+                trans[sl] = saved
+
+        sm, smeas = measure(cm.bg)
+        if smeas is None:
+            rej.add(where, a, "background_structure", f"{detail}; corner model of two steps: not finite")
+            continue
+        if not _screen_fits(smeas, sub, sm, st, drange, rej, depth_ref=depth_ref, structure=False):
+            continue
+        # the proximity rule against any shadow (also one merged with a band, which was no
+        # candidate): no pixels darker than segment_depth under the corner model within
+        # proximity_margin_px outside this shadow's threshold outline (about 1 px outside the
+        # edge; the ring starts at 2 px, where this shadow's own blurred edge is above that level)
+        fc = smeas.fits[0]
+        rf = float(np.sqrt(fc[2] * fc[3]))
+        rho = np.hypot(cm.xy[0] + cand.centre[c, 0] - fc[0], cm.xy[1] + cand.centre[c, 1] - fc[1])
+        ring = (rho > rf + 2.0) & (rho < rf + 1.0 + st.proximity_margin_px)
+        near = ring & (saved < cm.bg * (1.0 - st.segment_depth))
+        if np.count_nonzero(near) >= 3:
+            rej.add(where, a, "overlap", f"another shadow within {st.proximity_margin_px} px "
+                                         "(corner model)")
+            continue
+        # the corner model's own uncertainty, propagated: the centre measured again with the
+        # model moved by one sd along each principal direction of its parameters' covariance
+        # (a direction whose one-sd move gives no measurable shadow: the model is not determined
+        # well enough to measure on, the shadow stays refused)
+        lam, vec = np.linalg.eigh(cm.cov_q)
+        extra = np.zeros((2, 2))
+        undetermined = not np.all(np.isfinite(lam))
+        for li, vi in zip(lam, vec.T):
+            if undetermined:
+                break
+            if not li > 0:
+                continue
+            q = cm.q + np.sqrt(li) * vi
+            with np.errstate(over="ignore", invalid="ignore"):
+                bq = np.exp(_corner_design(q[:8], *cm.xy) @ q[8:])
+            _, mi = measure(bq)
+            if mi is None or not mi.ok[0]:
+                undetermined = True
+                break
+            dc = mi.fits[0, :2] - smeas.fits[0, :2]
+            extra += np.outer(dc, dc)
+        if undetermined:
+            rej.add(where, a, "background_structure", f"{detail}; corner model of two steps: not determined "
+                                                      "(a one-sd change of its parameters leaves no measurable shadow)")
+            continue
+        # and the model's misfit next to the shadow: the centre measured again with the
+        # background corrected by the inner ring's mean residual per sector (interpolated in angle)
+        sc = (np.arange(12) + 0.5) * (np.pi / 6) - np.pi
+        a_ = np.arctan2(cm.xy[1], cm.xy[0])
+        f = np.interp(a_, np.concatenate([sc - 2 * np.pi, sc, sc + 2 * np.pi]), np.tile(cm.sector_res, 3))
+        _, mi = measure(cm.bg * np.exp(-f))
+        if mi is not None and mi.ok[0]:
+            dc = mi.fits[0, :2] - smeas.fits[0, :2]
+            extra += np.outer(dc, dc)
+        meas.extra_cov[c] = extra
+        for f in ("ok", "fits", "n_pts", "rms", "s2", "sums", "qmin", "edge_frac", "edge_shift"):
+            getattr(meas, f)[c] = getattr(smeas, f)[0]
+        meas.normals[c] = smeas.normals[0]
+        meas.n_fits += smeas.n_fits
+        meas.corner.add(c)
+        out.append(c)
+    return out
+
+
 # --------------------------------------------------------------------------- stage 6-7: edges and fits
 
 @dataclass
@@ -1198,6 +1503,8 @@ class _Measurement:
     edge_frac: np.ndarray   # fraction of edge points on a strong background edge
     n_fits: int
     edge_shift: np.ndarray  # (C, 2) centre minus the centre fitted without background-edge points
+    extra_cov: np.ndarray = None  # (C, 2, 2) added to the centre covariance (corner model's own)
+    corner: set = None      # candidates measured with the corner model
 
 
 def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True):
@@ -1254,6 +1561,11 @@ def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True)
         n = model.a.shape[1]
         iu = np.clip(np.rint(u - model.umin).astype(np.intp), 0, n - 1)
         g = np.take_along_axis(model.edge_gradient, iu, axis=1)
+        if model.corner is not None:      # corner shadows: the two-step model's own gradient
+            for j, cm in enumerate(model.corner):
+                if cm is not None:
+                    g[j] = _bilinear(cm.grad, np.clip(ex[j] - cm.x0, 0, cm.grad.shape[1] - 1),
+                                     np.clip(ey[j] - cm.y0, 0, cm.grad.shape[0] - 1))
         on_edge = valid & (g > st.background_edge_gradient)
     return ex, ey, valid, level, qmin, on_edge, nr
 
@@ -1412,13 +1724,19 @@ def _measure_edges_and_fit(trans, model, cand, st):
         centre = np.where(ok[:, None], fits[:, :2], centre)
         radius = np.where(ok, np.sqrt(np.abs(fits[:, 2] * fits[:, 3])), radius)
     return _Measurement(ok=ok, why=why, fits=fits, n_pts=n_pts, rms=rms, s2=s2, normals=normals, sums=sums,
-                        qmin=qmin, edge_frac=edge_frac, n_fits=n_fits, edge_shift=shift)
+                        qmin=qmin, edge_frac=edge_frac, n_fits=n_fits, edge_shift=shift,
+                        corner=set(), extra_cov=np.zeros((nc, 2, 2)))
 
 
 # --------------------------------------------------------------------------- stage 8-9: rejection, uncertainty
 
-def _screen_fits(meas, cand, model, st, drange, rej):
-    """Post-fit screening; returns the indices (into the candidates) of accepted shadows."""
+def _screen_fits(meas, cand, model, st, drange, rej, deferred=None, depth_ref=None, structure=True):
+    """Post-fit screening; returns the indices (into the candidates) of accepted shadows.
+
+    ``deferred``: a list to which ``background_structure`` refusals go as (c, centre, area,
+    detail) instead of ``rej`` (the corner model may still measure them). ``depth_ref``: the
+    frame's median optical depth (default: from ``meas``). ``structure=False`` skips the
+    one-direction model's structure checks (the corner pass has its own)."""
     if drange is not None:
         dmin = drange[0] * (1.0 - st.size_tolerance)
         dmax = drange[1] * (1.0 + st.size_tolerance)
@@ -1427,7 +1745,9 @@ def _screen_fits(meas, cand, model, st, drange, rej):
     misfit = model.structure / max(float(np.median(model.structure)), 1e-9)
     cross = model.minor / max(float(np.median(model.minor)), 1e-9)
     depth_all = -np.log(np.clip(meas.qmin, 1e-6, None))
-    depth_ref = float(np.median(depth_all[ok])) if np.any(ok) else np.nan
+    if depth_ref is None:
+        depth_ref = float(np.median(depth_all[ok])) if np.any(ok) else np.nan
+    n_ok = np.count_nonzero(ok) if structure else 3
     out = []
     for c in range(len(cand.index)):
         where, a = cand.centre[c], cand.area[c]
@@ -1453,18 +1773,22 @@ def _screen_fits(meas, cand, model, st, drange, rej):
                 rej.add(where, a, "not_a_sphere_size", f"fitted diameter {dfit:.1f} px outside "
                                                        f"[{dmin:.1f}, {dmax:.1f}]")
                 continue
-        if (st.overlap_darkness is not None and np.isfinite(depth_ref) and np.count_nonzero(ok) >= 3
+        if (st.overlap_darkness is not None and np.isfinite(depth_ref) and n_ok >= 3
                 and depth_all[c] > st.overlap_darkness * depth_ref):
             rej.add(where, a, "overlap", f"shadow optical depth {depth_all[c]:.2f} > {st.overlap_darkness} x "
                                          f"median {depth_ref:.2f}: spheres in line")
             continue
+        if not structure:
+            out.append(c)
+            continue
+        to = (lambda w, ar, why, d: deferred.append((c, w, ar, d))) if deferred is not None else rej.add
         if cross[c] > st.max_cross_structure:
-            rej.add(where, a, "background_structure",
+            to(where, a, "background_structure",
                     f"background changes along its main structure too ({cross[c]:.1f} x the frame's median "
                     f"> {st.max_cross_structure}): a corner of two steps or bands, no background model holds")
             continue
         if misfit[c] > st.max_background_misfit:
-            rej.add(where, a, "background_structure",
+            to(where, a, "background_structure",
                     f"background round the shadow misfits a straight structure {misfit[c]:.1f} x as much as the "
                     f"frame's median shadow (> {st.max_background_misfit}): a corner or curved step")
             continue
@@ -1476,7 +1800,8 @@ def _centre_uncertainty(accepted, meas, model, st):
     """Centre covariance ``f s^2 (sum n n^T)^-1`` per accepted shadow (s the edge RMS,
     f = max(1, n / (pi r)) for neighbouring rays sharing pixels), plus
     ``background_edge_sigma_px`` in quadrature across the structure for shadows whose edge
-    crosses a background edge. Returns a list of (c, cov, on_edge)."""
+    crosses a background edge, plus ``meas.extra_cov`` (the corner model's propagated
+    uncertainty). Returns a list of (c, cov, on_edge)."""
     out = []
     if not accepted:
         return out
@@ -1493,7 +1818,7 @@ def _centre_uncertainty(accepted, meas, model, st):
         if det_[j] <= 0:
             out.append((c, np.full((2, 2), np.nan), False))
             continue
-        cov = cov_all[j]
+        cov = cov_all[j] + meas.extra_cov[c]
         on_edge = bool(on_all[j])
         if on_edge and st.background_edge_clusters and meas.normals[c] is not None:
             # edge points on a background edge (band or step) err together: each run of them is
@@ -1531,6 +1856,7 @@ def _runs(flags):
 
 def _assemble(accepted, rej, n_fits, sdd_px, pp, shape, hot, message, meas=None, cand=None, model=None):
     m = len(accepted)
+    corner = meas.corner if meas is not None else set()
     on_edge = np.zeros(m, dtype=bool)
     if m:
         idx = np.array([a[0] for a in accepted])
@@ -1573,7 +1899,8 @@ def _assemble(accepted, rej, n_fits, sdd_px, pp, shape, hot, message, meas=None,
         centre_px=centre, centre_corrected_px=corrected, centre_cov_px2=cov, semi_axes_px=axes,
         angle_rad=ang, n_edge_points=npts, fit_rms_px=rms, min_transmission=qmin, on_background_edge=on_edge,
         rejected=rejected, background=1.0, success=m > 0, message=message, nfev=int(n_fits),
-        n_hot_pixels=n_hot, hot_pixels_px=hot)
+        n_hot_pixels=n_hot, hot_pixels_px=hot,
+        on_corner=np.array([a[0] in corner for a in accepted], dtype=bool))
 
 
 # --------------------------------------------------------------------------- baselines
