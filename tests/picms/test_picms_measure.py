@@ -231,6 +231,16 @@ features:
     import json
     re = {d["id"]: d for d in json.loads((tmp_path / "reloc.json").read_text())["features"]}
     assert abs(re["c7"]["size"] - f["c7"]["size"]) < 0.5e-6
+    # both recomputes are in the calibration history (kind picms_measurement, source offline)
+    import os
+
+    from ct_calib_nodes.io.history import History
+    recs = History(os.environ["METRO_HISTORY_DB"]).list(kind="picms_measurement", with_details=True)
+    assert [(r.source, r.status) for r in recs] == [("offline", "success")] * 2
+    q = {x.name: x for x in recs[1].quantities}
+    assert q["size_c7"].value == pytest.approx(re["c7"]["size"]) and q["size_c7"].u == pytest.approx(re["c7"]["u_size"])
+    assert q["side_x_sq5"].unit == "m" and "spacing_grid_1" in q and q["n_ok"].value == 23
+    assert {i.role for i in recs[1].inputs} == {"measurement_json", "measurement_json_out"}
 
 
 def test_dark_field_edges_with_the_band_width_given():

@@ -1,6 +1,7 @@
 """The integration guide's example subscriber (ros_ws/src/ct_calib_nodes/examples/plant_subscriber.py),
 run in its own process against the live solver nodes of a namespaced cell: it receives the geometry and
 the error map with the latched QoS, finds them valid, and prints them."""
+import json
 import pathlib
 import subprocess
 import sys
@@ -50,11 +51,21 @@ def test_example_subscriber_against_live_nodes(start_node, ros_node):
     ros_node.create_subscription(ErrorMap, "/cell_x/ct/error_map", maps.append, QOS_LATCHED)
     assert ros_node.spin_until(lambda: any(m.final for m in maps), timeout=120), \
         geo.log()[-2000:] + mot.log()[-2000:]
-    r = subprocess.run([sys.executable, str(EXAMPLE), "--timeout", "60", "--ros-args", "-r", "__ns:=/cell_x"],
+    # a Pixel Probe measurement result, latched as picms_measurement publishes it (a stand-in publisher:
+    # running the cell here would cost ~80 s; the node's own publication is tested in
+    # tests/ros/test_picms_measurement_node.py)
+    from std_msgs.msg import String
+    meas = {"part": "chrome_targets", "mode": "stage", "summary": {"n_points": 6, "n_ok": 6},
+            "features": [{"id": "c7", "type": "circle", "size": 0.00700014, "u_size": 9e-8, "form_rms": 2.1e-7,
+                          "n_points": 6}], "dot_grids": []}
+    mpub = ros_node.create_publisher(String, "/cell_x/picms/measurement/result", QOS_LATCHED)
+    mpub.publish(String(data=json.dumps(meas)))
+    r = subprocess.run([sys.executable, str(EXAMPLE), "--timeout", "60", "--measurement", "--ros-args", "-r", "__ns:=/cell_x"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     out = r.stdout
     assert "calibration valid" in out and "z_R" in out and out.count("SRD ") == 3, out
+    assert "6/6 points" in out and "c7" in out and "size 7.000140 mm  (u = 0.090 um)" in out, out
     final = [m for m in maps if m.final][-1]
     assert final.campaign_id.startswith("/cell_x@") and f"campaign {final.campaign_id}, final," in out, out
     assert all(not m.final for m in maps[:maps.index(final)])      # growing maps (if seen) are not final

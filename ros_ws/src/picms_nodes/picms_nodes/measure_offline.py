@@ -2,6 +2,7 @@
 
     picms_measure_offline MEASUREMENT.json --out NEW.json [--mode stage|tracker]
                           [--program part_program.yaml] [--relocate] [--report DIR]
+                          [--history DB|none] [--namespace /cell]
 
 MEASUREMENT.json is a measurement written by `measure` (demo, node): besides the INTERFACES.md
 keys it holds every point (encoder reading, stage- and tracker-frame point, covariances, the
@@ -11,7 +12,8 @@ intrinsics; the image crops around every point's feature pixels sit beside it
 mode); with --relocate every point is located again in its recorded crops with the current
 locators (edge point on PI, dot centroid) and triangulated at its recorded encoder reading.
 Points that cannot be read or located are listed and left out; nothing is written when the
-fit fails (an existing output stays). Exit 0 written, 1 not written, 2 bad arguments.
+fit fails (an existing output stays). The recompute, or its failure, is stored in the
+calibration history (kind ``picms_measurement``, source offline; io/picms_history.py). Exit 0 written, 1 not written, 2 bad arguments.
 """
 from __future__ import annotations
 
@@ -88,6 +90,9 @@ def main(argv=None) -> int:
     ap.add_argument("--relocate", action="store_true", help="re-locate every point in its recorded image crops")
     ap.add_argument("--crops", default=None, help="crops file (default: MEASUREMENT.crops.npz)")
     ap.add_argument("--report", default=None, help="write report.md and plots into this directory")
+    ap.add_argument("--history", default="", help="calibration history database (default $METRO_HISTORY_DB or "
+                                                  "~/.local/share/metro_cell/history.sqlite; none = off)")
+    ap.add_argument("--namespace", default="/", help="the cell (namespace) the measurement is stored under")
     a = ap.parse_args(argv)
     path = pathlib.Path(a.measurement)
     try:
@@ -129,6 +134,7 @@ def main(argv=None) -> int:
         print(f"fit failed, nothing written: {e}", file=sys.stderr)
         for p in problems:
             print(f"  not used: {p}", file=sys.stderr)
+        _store(a, None, f"fit failed: {e}", path, None)
         return 1
     keep = {k: doc[k] for k in ("part_finding", "band_width_m", "probe", "program", "program_yaml") if k in doc}
     new.update(keep)
@@ -142,8 +148,36 @@ def main(argv=None) -> int:
         write_report(new, a.report, title=f"PiCMS measurement (offline recompute): {program.part}")
     for p in problems:
         print(f"  not used: {p}")
-    print(json.dumps({"written": a.out, "mode": mode, "points": len(pts), "problems": len(problems)}))
+    out = {"written": a.out, "mode": mode, "points": len(pts), "problems": len(problems)}
+    hist = _store(a, new, "", path, a.out)
+    if hist:
+        out["history"] = hist
+    print(json.dumps(out))
     return 0
+
+
+def _store(a, doc, message, src, written):
+    """The recompute (or its failure) in the calibration history, kind picms_measurement, source
+    offline, linked to the input measurement.json and the one written. Never fatal."""
+    from ct_calib_nodes.io.history import Input, open_history  # noqa: PLC0415
+
+    from .io.picms_history import measurement_record  # noqa: PLC0415
+
+    if str(a.history).lower() in ("none", "off", "false", "0"):
+        return None
+    h = open_history(a.history or None, logger=lambda m: print(m, file=sys.stderr))
+    if h is None:
+        return None
+    try:
+        inputs = [Input.file("measurement_json", src)] + ([Input.file("measurement_json_out", written)] if written else [])
+        plain = json.loads(json.dumps(doc, default=measure._json_default)) if doc is not None else None
+        s = h.record(measurement_record(plain, cell=a.namespace, source="offline", inputs=inputs, message=message))
+        return {"db": h.path, "id": s.id, "uid": s.uid, "status": s.status}
+    except Exception as exc:  # noqa: BLE001 - the result file stands without its history
+        print(f"calibration history not recorded: {exc}", file=sys.stderr)
+        return None
+    finally:
+        h.close()
 
 
 if __name__ == "__main__":

@@ -121,3 +121,60 @@ def attach_msg(rec: SolveRecord, res, file_path: str = "", stamp_ns: int | None 
     msg = calibration_msg(res, Time(sec=t // 1_000_000_000, nanosec=t % 1_000_000_000), file_path)
     rec.result["ros_msg"] = ros_msg_blob(MSG_TYPE, serialize_message(msg))
     return rec
+
+
+# ------------------------------------------------------------------------------ measurements
+MEASUREMENT_KIND = "picms_measurement"
+MEASUREMENT_TREND_KEYS = ("flatness", "n_ok")
+
+
+def _u(v):
+    return None if v is None or not np.isfinite(float(v)) else float(v)
+
+
+def measurement_quantities(doc: dict) -> list:
+    """The trendable figures of a measurement.json (SI, u = stated standard uncertainty):
+    ``size_<feature>`` (circle diameter, square mean side) [m], ``side_x|y_<feature>`` (squares),
+    ``size_x|y_<feature>`` (rectangles), ``form_rms_<feature>`` [m], ``spacing_<grid>_<k>`` (mean
+    spacing at k pitches) [m], ``flatness`` [m] (of the part plane), ``n_ok`` [1]."""
+    q = []
+    for f in doc.get("features", []):
+        fid = f.get("id")
+        if "error" in f or "size" not in f:
+            continue
+        if f["type"] == "rectangle":
+            for i, ax in enumerate("xy"):
+                q.append(Quantity(f"size_{ax}_{fid}", float(f["size"][i]), _u(f["u_size"][i]), "m"))
+        else:
+            q.append(Quantity(f"size_{fid}", float(f["size"]), _u(f.get("u_size")), "m"))
+        if f["type"] == "square":
+            for i, ax in enumerate("xy"):
+                q.append(Quantity(f"side_{ax}_{fid}", float(f["sides"][i]), _u(f["u_sides"][i]), "m"))
+        q.append(Quantity(f"form_rms_{fid}", float(f["form_rms"]), None, "m"))
+    for g in doc.get("dot_grids", []):
+        for s in g.get("spacings", []):      # no u: the spacings share dots, so their mean's u is not sd/sqrt(n)
+            q.append(Quantity(f"spacing_{g['id']}_{s['k']}", float(s["mean"]), None, "m"))
+    if "plane" in doc:
+        q.append(Quantity("flatness", float(doc["plane"]["flatness"]), None, "m"))
+    if "summary" in doc:
+        q.append(Quantity("n_ok", float(doc["summary"]["n_ok"]), None, "1"))
+    return q
+
+
+def measurement_record(doc: dict | None, *, cell: str, source: str, inputs=(), message: str = "",
+                       campaign_id: str | None = None) -> SolveRecord:
+    """A record of a measurement (``doc`` the measurement.json content without its raw points) or of a
+    failed one (``doc`` None, ``message`` why). Status: ``success`` when every planned point was
+    measured and every feature fitted, ``poor_fit`` when some were not (the result still stands for
+    what was measured), ``failed`` when there is no result."""
+    if doc is None:
+        return SolveRecord(cell=cell, kind=MEASUREMENT_KIND, status="failed", source=source,
+                           message=str(message or "failed"), result={"error": str(message or "failed")},
+                           campaign_id=campaign_id, final=True, inputs=list(inputs))
+    s = doc.get("summary", {})
+    complete = s.get("n_ok") == s.get("n_points") and not any("error" in f for f in doc.get("features", []))
+    result = {k: v for k, v in doc.items() if k not in ("points", "probe")}
+    return SolveRecord(cell=cell, kind=MEASUREMENT_KIND, status="success" if complete else "poor_fit", source=source,
+                       message=message or f"{doc.get('part', '?')}: {s.get('n_ok')}/{s.get('n_points')} points",
+                       result=result, campaign_id=campaign_id, final=True, inputs=list(inputs),
+                       quantities=measurement_quantities(doc))

@@ -49,6 +49,8 @@ PARAMS = {
     "image_reliable": (True, "subscribe images reliably [-]"),
     "ready_timeout_s": (20.0, "wait this long for joint_states, CameraInfo and the stage [s]"),
     "auto_start": (False, "run the part program once at start-up [-]"),
+    "history_db": ("", "calibration history (kind picms_measurement); empty = METRO_HISTORY_DB or the default, "
+                       "none = off [path]"),
 }
 
 
@@ -65,6 +67,8 @@ class PicmsMeasurementNode(Node):
                             tracker_window_s=float(p["tracker_window_s"]), image_reliable=bool(p["image_reliable"]),
                             frame_timeout_s=float(p["frame_timeout_s"]))
         self.busy = threading.Lock()
+        from ct_calib_nodes.nodes.plant import HistoryHook
+        self.history = HistoryHook(self, str(p["history_db"]))
         self.pub_point = self.create_publisher(PointStamped, POINT_TOPIC, 50)
         self.pub_result = self.create_publisher(String, RESULT_TOPIC, QOS_LATCHED)
         self.srv = self.create_service(Trigger, SERVICE, self.on_trigger, callback_group=ReentrantCallbackGroup())
@@ -110,15 +114,38 @@ class PicmsMeasurementNode(Node):
             measure.write_crops(run, pathlib.Path(out).with_suffix(".crops.npz"))
             summary = {k: v for k, v in doc.items() if k not in ("points", "probe")}
             self.pub_result.publish(String(data=json.dumps(summary, default=measure._json_default)))
+            self.store(json.loads(json.dumps(summary, default=measure._json_default)), out, cal_path)
             msg = f"measured {doc['summary']['n_ok']}/{doc['summary']['n_points']} points; written {out}"
             self.get_logger().info(msg)
             return True, msg
         except (part_program.PartProgramError, TargetingError, fitting.FitError, ValueError, OSError,
                 TimeoutError) as exc:
             self.get_logger().error(f"measurement failed (nothing written): {exc}")
+            self.store(None, None, None, message=str(exc))
             return False, str(exc)
         finally:
             self.busy.release()
+
+    def store(self, summary, out, cal_path, message=""):
+        """The measurement (or its failure) in the calibration history, linked to its files."""
+        from ct_calib_nodes.io.history import Input
+        from ..io.picms_history import measurement_record
+        inputs = []
+        for role, path in (("part_program", self.p["part_program"]), ("picms_calibration_yaml", cal_path),
+                           ("measurement_json", out)):
+            try:
+                if path and pathlib.Path(path).is_file():
+                    inputs.append(Input.file(role, pathlib.Path(path)))
+            except OSError:
+                pass
+        try:
+            rec = measurement_record(summary, cell=self.history.cell, source="live", inputs=inputs, message=message)
+        except (KeyError, TypeError, ValueError) as exc:
+            self.get_logger().error(f"calibration history: measurement not stored: {exc}")
+            return
+        r = self.history.store(rec)
+        if r is not None:
+            self.get_logger().info(f"measurement stored in the calibration history ({rec.status})")
 
 
 def main(args=None):
