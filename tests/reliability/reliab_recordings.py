@@ -99,3 +99,56 @@ def record_offsets(path):
     from reliab_fuzz import record_offsets_of  # noqa: PLC0415
 
     return record_offsets_of(pathlib.Path(path).read_bytes())
+
+
+def picms_recording(folder, seed=3, width=480, height=360, tracker_rate_hz=15.0, joint_rate_hz=8.0,
+                    chunk_size=48 * 1024, messages=None, truth_out=None):
+    """A short simulated Pixel Probe session, calibratable by picms_calibrate_offline: the Appendix A
+    stations (one settled frame of each camera per station, reduced sensor of the same field of view),
+    CameraInfo, stage joint_states and tracker readings as INTERFACES.md gives them:
+    ``folder/rec.mcap`` with ``picms_cell.yaml`` beside it. Returns the .mcap path; ``messages``
+    receives (topic, type name, message, log time) of what was written."""
+    messages = [] if messages is None else messages
+    from geometry_msgs.msg import PointStamped
+    from sensor_msgs.msg import Image, JointState
+
+    from ct_calib_nodes.io import ct_files
+    from ct_calib_nodes.io.mcap_io import Rosbag2McapWriter
+    from picms_nodes.core import campaign, cell
+    from picms_nodes.nodes.picms_camera_sim import camera_info_msg
+
+    folder = pathlib.Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    scale = 2592 / width            # same field of view, fewer (larger) pixels
+    truth = cell.make_cell(rng, cell.make_physics(rng, width=width, height=height, pixel_m=2.2e-6 * scale,
+                                                  psf_sigma_px=float(rng.uniform(0.5, 1.0))))
+    rec, st = campaign.simulate_session(truth, rng, frames_per_station=1, mid_move_frames=0,
+                                        tracker_rate_hz=tracker_rate_hz, joint_rate_hz=joint_rate_hz)
+    if truth_out is not None:
+        truth_out.append((rec, st))
+    ev = []
+    for t, q in zip(rec.joint_stamps_ns.tolist(), rec.joint_positions):
+        js = JointState(name=["x", "y", "z"], position=[float(v) for v in q])
+        js.header.stamp = _stamp(T0_NS + t)
+        ev.append(("/picms/stage/joint_states", "sensor_msgs/msg/JointState", js, T0_NS + t))
+    for t, name, p in rec.tracker:
+        m = PointStamped()
+        m.header.stamp, m.header.frame_id = _stamp(T0_NS + t), "tracker"
+        m.point.x, m.point.y, m.point.z = (float(v) for v in p)
+        ev.append((f"/picms/tracker/smr/{name}", "geometry_msgs/msg/PointStamped", m, T0_NS + t + 1))
+    for t, cam, img in rec.frames:
+        m = Image(height=img.shape[0], width=img.shape[1], encoding="mono8", is_bigendian=0, step=img.shape[1],
+                  data=img.tobytes())
+        m.header.stamp, m.header.frame_id = _stamp(T0_NS + t), f"{cam}_optical"
+        ev.append((f"/picms/{cam}/camera_info", "sensor_msgs/msg/CameraInfo",
+                   camera_info_msg(rec.camera_info[cam], _stamp(T0_NS + t), f"{cam}_optical"), T0_NS + t + 2))
+        ev.append((f"/picms/{cam}/image_raw", "sensor_msgs/msg/Image", m, T0_NS + t + 3))
+    ev.sort(key=lambda e: e[3])
+    path = folder / "rec.mcap"
+    with Rosbag2McapWriter(path, chunk_size=chunk_size) as w:
+        for topic, typ, msg, t in ev:
+            w.write(topic, msg, t)
+            messages.append((topic, typ, msg, t))
+    ct_files.write_yaml(folder / "picms_cell.yaml", rec.cell)
+    return path

@@ -9,7 +9,8 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
-        ("share/" + package_name + "/config", ["config/picms_cell.yaml"]),
+        ("share/" + package_name + "/config", ["config/picms_cell.yaml", "config/part_program_targets.yaml",
+                                                 "config/part_program_flange.yaml"]),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
@@ -24,6 +25,9 @@ setup(
         "picms_calibration = picms_nodes.nodes.picms_calibration:main",
         "picms_calibrate_offline = picms_nodes.offline:main",
         "picms_demo = picms_nodes.nodes.picms_demo:main",
+        "picms_measure_offline = picms_nodes.measure_offline:main",
+        "picms_measure_demo = picms_nodes.measure_demo:main",
         "picms_targeting = picms_nodes.nodes.picms_targeting:main",
+        "picms_measurement = picms_nodes.nodes.picms_measurement:main",
     ]},
 )

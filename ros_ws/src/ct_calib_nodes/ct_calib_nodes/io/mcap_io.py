@@ -921,7 +921,8 @@ def iter_recording(path, topics=None, report: ReadReport | None = None,
     types : dict, optional
         ``{topic: 'pkg/msg/Type'}``: messages on these topics whose schema names another type,
         or whose schema text lacks fields of the installed type, are counted as undecodable
-        (``report.wrong_type``) instead of yielded.
+        (``report.wrong_type``) instead of yielded. A key may also be a compiled ``re.Pattern``
+        (topics it matches, e.g. every ``/picms/camera_N/image_raw``); exact names come first.
     raw_topics : iterable of str, optional
         Messages on these topics come undecoded: ``RecordedMessage.msg`` is a memoryview of
         their CDR bytes (one copy out of the decompressed chunk), for readers that parse only a
@@ -939,7 +940,13 @@ def iter_recording(path, topics=None, report: ReadReport | None = None,
 
     report = report if report is not None else ReadReport()
     wanted = set(topics) if topics is not None else None
-    expect = {t: normalise_type(v) for t, v in (types or {}).items()}
+    expect = {t: normalise_type(v) for t, v in (types or {}).items() if isinstance(t, str)}
+    expect_re = [(t, normalise_type(v)) for t, v in (types or {}).items() if not isinstance(t, str)]
+
+    def expected(topic):
+        if topic not in expect:
+            expect[topic] = next((v for pat, v in expect_re if pat.match(topic)), None)
+        return expect[topic]
     raw = set(raw_topics)
     factory = DecoderFactory()
 
@@ -970,9 +977,10 @@ def iter_recording(path, topics=None, report: ReadReport | None = None,
                     schema = fr.schemas.get(sid)
                     tname = normalise_type(schema.name) if schema is not None and schema.name.count("/") in (1, 2) \
                         else (schema.name if schema is not None else "")
-                    if topic in expect and tname != expect[topic]:
+                    want = expected(topic)
+                    if want is not None and tname != want:
                         report.wrong_type += 1
-                        bad(topic, f"{file.name}: {topic} carries {tname or 'no schema'}, expected {expect[topic]}")
+                        bad(topic, f"{file.name}: {topic} carries {tname or 'no schema'}, expected {want}")
                         continue
                     if topic in raw:
                         if enc != "cdr":
@@ -987,9 +995,9 @@ def iter_recording(path, topics=None, report: ReadReport | None = None,
                         try:
                             if schema is None:
                                 raise ValueError(f"schema {sid} is missing")
-                            lacks = _schema_lacks(schema, expect[topic]) if topic in expect else []
+                            lacks = _schema_lacks(schema, want) if want is not None else []
                             if lacks:
-                                raise ValueError(f"its schema text lacks the fields {lacks} of {expect[topic]}")
+                                raise ValueError(f"its schema text lacks the fields {lacks} of {want}")
                             dec = factory.decoder_for(enc, schema)
                             if dec is None:
                                 raise ValueError(f"no decoder for message encoding {enc!r} "

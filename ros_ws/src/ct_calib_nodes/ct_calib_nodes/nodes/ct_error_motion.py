@@ -16,6 +16,9 @@ Topic names are relative: ``--ros-args -r __ns:=/cell_a`` moves the node into ce
 Every final map (campaign complete or service request) is stored in the calibration history
 (parameter ``history_db``); at start the latest valid maps of the cell are re-published latched, and a
 map that is not SUCCESS never replaces a valid one.
+Restart recovery (nodes/campaign_journal.py): the accepted observations are journaled; a node killed
+mid-campaign replays them at start and solves again once the (latched) geometry arrives; the log names
+the frames it needs again (those published while it was down).
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from ct_calib_nodes.core.ct_pipeline import campaign_error_map, solve_campaign_p
 from ct_calib_nodes.io.results import error_map_msg, estimate_msg, static_from_geometry_msg
 from ct_calib_nodes.nodes import plant
 from ct_calib_nodes.nodes.bad_input import BadInputCounter
+from ct_calib_nodes.nodes.campaign_journal import JOURNAL_PARAMS, CampaignJournal
 from ct_calib_nodes.nodes.runner import (CT_FILE_PARAMS, QOS_LATCHED, QOS_RELIABLE_STREAM, ObservationIntake,
                                          declare_parameters, load_ct_files, run_node)
 
@@ -39,6 +43,7 @@ KIND, MSG_TYPE = "ct_error_map", "metro_msgs/msg/ErrorMap"
 PARAMS = {
     **CT_FILE_PARAMS,
     **plant.HISTORY_PARAMS,
+    **JOURNAL_PARAMS,
     "idle_solve_s": (5.0, "solve the last position when no observation arrived for this long [s]; 0 = never"),
     "min_frames": (1, "fewest frames of a position before it is solved [count]"),
     "loss": ("linear", "least-squares loss: linear, huber, soft_l1, cauchy, arctan"),
@@ -79,7 +84,18 @@ class CtErrorMotion(Node):
                 self.pubs[mode].publish(msg)
                 self.get_logger().info(f"re-published the latest valid {mode} error map of cell {self.history.cell}: "
                                        f"history solve {rec.id} of {rec.created_utc}")
+        self.journal = CampaignJournal(self, "ct_error_motion", SphereObservationArray, str(self.p["history_db"]))
+        if self.journal.replay(self._on_obs):
+            self.intake.last_rx = None       # the idle (final) solve waits for live data
         self.diagnostics = plant.Diagnostics(self, self.diagnose)
+
+    def reset_campaign(self):
+        """A new campaign begins (the journaled one was not continued)."""
+        self.intake = ObservationIntake(self, self.ref)
+        self.acc = self.intake.acc
+        self.guard.reset()
+        self.results = {m: {} for m in MODES}
+        self.solved_frames = {m: {} for m in MODES}
 
     def _on_geometry(self, msg):
         vals = np.asarray(msg.static_estimate.values, dtype=float)
@@ -115,12 +131,16 @@ class CtErrorMotion(Node):
                                            centre_uncertainty_m=self.ref.center_uncertainty_m)
 
     def _on_obs(self, msg):
-        self.obs_rate.tick()
+        if not self.journal.replaying:
+            self.obs_rate.tick()
+            if not self.journal.continues(msg, self.guard):
+                self.reset_campaign()
         if plant.refused_as_other_campaign(self, msg):
             return
         k = self.intake.add(msg)
         if k is not None:
             plant.accept_campaign_msg(self.guard, msg)
+            self.journal.accepted(msg)
         if k is not None and k >= 2 and k == len(self.acc.positions) - 1 and self.acc.positions[k].n_frames == 1:
             self._solve_complete(final=False)      # position k-1 just completed
 
@@ -192,6 +212,8 @@ class CtErrorMotion(Node):
                                         "stays latched")
             if final:
                 self._store(em, ks, mode, status, text, msg)
+        if final and self.last_map_status is not None and self.last_map_status[0] == "success":
+            self.journal.event("final", positions=len(self.acc.positions))   # nothing to resume
         self.get_logger().info(f"error map updated: {len(self.results['multi'])} position(s) solved")
 
     def _store(self, em, ks, mode, status, text, msg):
@@ -233,6 +255,7 @@ class CtErrorMotion(Node):
         return plant.OK, "running", values
 
     def close(self):
+        self.journal.close()
         self.history.close()
 
     def _on_solve(self, request, response):

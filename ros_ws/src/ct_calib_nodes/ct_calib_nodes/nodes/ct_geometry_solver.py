@@ -6,6 +6,11 @@ on, or no observation arrived for ``idle_solve_s``) it solves the 13-parameter
 static geometry and publishes ``/ct/geometry`` (metro_msgs/CtGeometry, latched)
 with covariance and status. Service ``~/solve`` (metro_msgs/srv/TriggerSolve)
 (re-)runs the solve on the observations held.
+
+Restart recovery (nodes/campaign_journal.py): every accepted observation message is journaled; a
+solver killed mid-campaign replays its journal at start (the state is rebuilt exactly, the solve
+then bit-identical to an uninterrupted run's once the frames sent while it was down are re-sent;
+the log names them), while the latest valid calibration stays published from the history.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from ct_calib_nodes.core.ct_pipeline import solve_campaign_static
 from ct_calib_nodes.io.results import geometry_msg
 from ct_calib_nodes.nodes import plant
 from ct_calib_nodes.nodes.bad_input import BadInputCounter
+from ct_calib_nodes.nodes.campaign_journal import JOURNAL_PARAMS, CampaignJournal
 from ct_calib_nodes.nodes.runner import (CT_FILE_PARAMS, QOS_LATCHED, QOS_RELIABLE_STREAM, ObservationIntake,
                                          declare_parameters, load_ct_files, run_node)
 
@@ -43,6 +49,7 @@ def plant_input_topic(topic, pos):
 PARAMS = {
     **CT_FILE_PARAMS,
     **plant.HISTORY_PARAMS,
+    **JOURNAL_PARAMS,
     "idle_solve_s": (3.0, "solve the first position when no observation arrived for this long [s]; 0 = never"),
     "min_frames": (3, "fewest frames of the first position before a solve is attempted [count]"),
     "loss": ("linear", "least-squares loss: linear, huber, soft_l1, cauchy, arctan"),
@@ -75,18 +82,44 @@ class CtGeometrySolver(Node):
             self.pub.publish(msg)
             self.get_logger().info(f"re-published the latest valid calibration of cell {self.history.cell}: "
                                    f"history solve {rec.id} of {rec.created_utc} (campaign {rec.campaign_id})")
+        self.final_journaled = False
+        self.journal = CampaignJournal(self, "ct_geometry_solver", SphereObservationArray, str(self.p["history_db"]))
+        if self.journal.replay(self._on_obs):
+            self._after_replay()
         self.diagnostics = plant.Diagnostics(self, self.diagnose)
         self.get_logger().info(f"waiting for {self.resolve_topic_name('ct/observations')} ({self.ref.n_spheres} spheres, "
                                f"{self.instrument.detector.cols}x{self.instrument.detector.rows} px)")
 
+    def _after_replay(self):
+        """State rebuilt from the journal: solve what the killed node had solved (quietly: it was
+        published and stored then) or would have solved next; the idle timer waits for live data."""
+        self.intake.last_rx = None
+        p0 = self.acc.positions[0] if self.acc.positions else None
+        if p0 is not None and any(e.get("frames") == p0.n_frames for e in self.journal.events("solved")):
+            self._solve("resumed: solved before the restart", quiet=True)
+        elif len(self.acc.positions) >= 2:
+            self._solve("resumed: the stage had moved to position 2")
+
+    def reset_campaign(self):
+        """A new campaign begins (the journaled one was not continued)."""
+        self.intake = ObservationIntake(self, self.ref)
+        self.acc = self.intake.acc
+        self.guard.reset()
+        self.result, self.solved_n_frames, self.final_journaled = None, -1, False
+
     def _on_obs(self, msg):
-        self.obs_rate.tick()
+        if not self.journal.replaying:
+            self.obs_rate.tick()
+            if not self.journal.continues(msg, self.guard):
+                self.reset_campaign()
         if plant.refused_as_other_campaign(self, msg):
             return
         k = self.intake.add(msg)
         if k is not None:
             plant.accept_campaign_msg(self.guard, msg)
-        if k is not None and k >= 1 and self.result is None:
+            self.journal.accepted(msg)
+            self.final_journaled = False
+        if k is not None and k >= 1 and self.result is None and not self.journal.replaying:
             self._solve("the stage moved to position 2")
 
     def _on_timer(self):
@@ -94,8 +127,12 @@ class CtGeometrySolver(Node):
         idle = float(self.p["idle_solve_s"])
         if self.result is None and self.intake.idle_for(idle) and self.acc.positions:
             self._solve(f"no observations for {idle:.1f} s")
+        elif (self.result is not None and self.result.success and not self.final_journaled
+              and self.intake.idle_for(idle)):
+            self.journal.event("final", frames=self.solved_n_frames)    # campaign over: nothing to resume
+            self.final_journaled = True
 
-    def _solve(self, why: str):
+    def _solve(self, why: str, quiet: bool = False):
         p0 = self.acc.positions[0] if self.acc.positions else None
         if p0 is None or p0.n_frames < int(self.p["min_frames"]):
             return None, f"only {0 if p0 is None else p0.n_frames} frame(s) of the first position"
@@ -112,6 +149,14 @@ class CtGeometrySolver(Node):
                            time_from_ns(max(p0.stamps_ns)), n_rejected=p0.n_rejected,
                            campaign_id=self.guard.campaign_id)
         self.last_msg = msg
+        if quiet:        # re-solved from the journal: published and stored before the restart
+            if self.valid_msg is None and res.success:
+                self.pub.publish(msg)
+                self.valid_msg = msg
+            self.last_status, self.last_solve_t = msg.static_estimate.status, time.monotonic()
+            self.get_logger().info(f"static geometry ({why}): {res.message}; {p0.n_frames} frames, "
+                                   f"z_R = {res.x[0] * 1e3:.3f} mm, z_D = {res.x[3] * 1e3:.3f} mm")
+            return res, res.message
         if res.success or self.valid_msg is None:
             self.pub.publish(msg)
             if res.success:
@@ -121,6 +166,7 @@ class CtGeometrySolver(Node):
                                     f"(stamp {self.valid_msg.header.stamp.sec} s) stays on ct/geometry")
         self.last_status, self.last_solve_t = msg.static_estimate.status, time.monotonic()
         self._store(res, msg, p0)
+        self.journal.event("solved", frames=p0.n_frames, success=bool(res.success))
         log = self.get_logger().info if res.success else self.get_logger().error
         log(f"static geometry ({why}): {'converged' if res.success else 'NOT USABLE'}: {res.message}; "
             f"{p0.n_frames} frames, {res.n_obs} centres, rms {res.rms_px:.4f} px, {dt * 1e3:.0f} ms; "
@@ -162,6 +208,7 @@ class CtGeometrySolver(Node):
         return plant.OK, "calibration valid", values
 
     def close(self):
+        self.journal.close()
         self.history.close()
 
     def _on_solve(self, request, response):

@@ -308,11 +308,18 @@ def solvepnp_pose(U, n):
     img = np.ascontiguousarray(n, dtype=np.float64).reshape(-1, 1, 2)
     if len(obj) < 4:
         raise CalibrationError(f"pose needs at least 4 stations seen by the camera, got {len(obj)}")
-    ok, rvec, tvec = cv2.solvePnP(obj, img, np.eye(3), None, flags=cv2.SOLVEPNP_SQPNP)
-    if not ok:
-        raise CalibrationError("solvePnP (SQPnP start) failed")
-    ok, rvec, tvec = cv2.solvePnP(obj, img, np.eye(3), None, rvec, tvec, useExtrinsicGuess=True,
-                                  flags=cv2.SOLVEPNP_ITERATIVE)
+    if not (np.all(np.isfinite(obj)) and np.all(np.isfinite(img))):
+        raise CalibrationError("pose: station positions or image points are not finite")
+    try:     # degenerate input (stations on a line, readings far off) trips OpenCV's own assertions
+        ok, rvec, tvec = cv2.solvePnP(obj, img, np.eye(3), None, flags=cv2.SOLVEPNP_SQPNP)
+        if not ok:
+            raise CalibrationError("solvePnP (SQPnP start) failed")
+        ok, rvec, tvec = cv2.solvePnP(obj, img, np.eye(3), None, rvec, tvec, useExtrinsicGuess=True,
+                                      flags=cv2.SOLVEPNP_ITERATIVE)
+    except cv2.error as exc:
+        why = str(exc).strip().splitlines()[-1][:160]
+        raise CalibrationError(f"camera pose not solvable from the {len(obj)} stations seen (degenerate stage "
+                               f"positions or image points): OpenCV: {why}") from None
     if not ok:
         raise CalibrationError("solvePnP (iterative) failed")
     Rcw = cv2.Rodrigues(rvec)[0]

@@ -55,6 +55,15 @@ def find_namespace(path, namespace=None) -> str:
     raise ValueError(f"the recording holds several Pixel Probe cells {found}: choose one with --namespace")
 
 
+def types_of(namespace: str = "/") -> dict:
+    """INTERFACES.md types of the cell's topics in a namespace: a topic carrying another type (or a
+    schema without the type's fields) is counted as undecodable by the reader, never handed on."""
+    img_re, info_re, smr_prefix, joints = _names(namespace)
+    return {joints: "sensor_msgs/msg/JointState", img_re: "sensor_msgs/msg/Image",
+            info_re: "sensor_msgs/msg/CameraInfo",
+            re.compile("^" + re.escape(smr_prefix) + ".+$"): "geometry_msgs/msg/PointStamped"}
+
+
 @dataclass
 class RecordingReport:
     read: ReadReport = field(default_factory=ReadReport)
@@ -68,7 +77,7 @@ def read_recording(path, cell: dict, namespace: str = "/") -> tuple[Recording, R
     rep = RecordingReport()
     rec = Recording(cell=cell)
     js_t, js_q, infos = [], [], {}
-    for m in iter_recording(path, report=rep.read):
+    for m in iter_recording(path, report=rep.read, types=types_of(namespace)):
         t = m.topic
         try:
             if t == JOINTS:
@@ -95,7 +104,7 @@ def read_recording(path, cell: dict, namespace: str = "/") -> tuple[Recording, R
 def iter_frames(path, rep: RecordingReport, namespace: str = "/"):
     """Pass 2: (stamp_ns, camera, image) of every readable image; problems go to rep."""
     IMAGE_RE = _names(namespace)[0]  # noqa: N806
-    for m in iter_recording(path, report=ReadReport()):
+    for m in iter_recording(path, report=ReadReport(), types=types_of(namespace)):
         mm = IMAGE_RE.match(m.topic)
         if not mm:
             continue

@@ -25,6 +25,7 @@ from sensor_msgs.msg import CameraInfo, Image, JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from ct_calib_nodes.nodes import plant
+from ct_calib_nodes.nodes.bad_input import BadInputCounter
 from ct_calib_nodes.nodes.runner import QOS_LATCHED, declare_parameters
 
 from ..core.calibrate import CalibrationError, settled_windows
@@ -78,28 +79,34 @@ class PicmsCalibrationNode(Node):
         self.exit_code = 0
         self.js_t, self.js_q, self.tracker, self.dets, self.info = [], [], [], [], {}
         self.skipped = 0
+        self.bad_input = BadInputCounter(self.get_logger())   # bad messages counted by kind, logged rate-limited
+        guard = self.bad_input.guard
         sensors = MutuallyExclusiveCallbackGroup()
         images = MutuallyExclusiveCallbackGroup()
         self.svc_group = ReentrantCallbackGroup()
-        self.create_subscription(JointState, JOINTS_TOPIC, self.on_joints, qos_profile_sensor_data,
+        self.create_subscription(JointState, JOINTS_TOPIC, guard(JOINTS_TOPIC, self.on_joints), qos_profile_sensor_data,
                                  callback_group=sensors)
         tr = self.cell["tracker"]
         for name in list(tr["constellation"]) + [tr["probe_smr"]]:
             self.create_subscription(PointStamped, SMR_TOPIC.format(name),
-                                     lambda m, n=name: self.on_smr(n, m), qos_profile_sensor_data,
+                                     guard(SMR_TOPIC.format(name), lambda m, n=name: self.on_smr(n, m)),
+                                     qos_profile_sensor_data,
                                      callback_group=sensors)
         img_qos = QoSProfile(depth=4, reliability=ReliabilityPolicy.RELIABLE) if p["image_reliable"] \
             else qos_profile_sensor_data
         for c in p["cameras"]:
-            self.create_subscription(CameraInfo, INFO_TOPIC.format(c), lambda m, c=c: self.on_info(c, m),
+            self.create_subscription(CameraInfo, INFO_TOPIC.format(c), guard(INFO_TOPIC.format(c),
+                                                                              lambda m, c=c: self.on_info(c, m)),
                                      QOS_LATCHED, callback_group=sensors)
-            self.create_subscription(Image, IMAGE_TOPIC.format(c), lambda m, c=c: self.on_image(c, m),
+            self.create_subscription(Image, IMAGE_TOPIC.format(c), guard(IMAGE_TOPIC.format(c),
+                                                                         lambda m, c=c: self.on_image(c, m)),
                                      img_qos, callback_group=images)
         self.cmd = self.create_publisher(JointTrajectory, COMMAND_TOPIC, 10)
         self.pub = self.create_publisher(PicmsCalibration, CALIBRATION_TOPIC, QOS_LATCHED)
         self.create_service(RunPicmsCalibration, SERVICE, self.on_service, callback_group=self.svc_group)
         from .plant_hooks import PicmsPlant  # history (latest valid re-published now) and diagnostics
         self.plant = PicmsPlant(self, p["history_db"])
+        self.create_timer(5.0, self.bad_input.maybe_summarise)
         if p["auto_start"]:
             threading.Thread(target=self._auto, daemon=True).start()
 
@@ -108,9 +115,11 @@ class PicmsCalibrationNode(Node):
         try:
             q = joint_positions(m)
         except MessageError as exc:
-            self.get_logger().warning(f"skipped joint_states: {exc}")
+            self.bad_input.report(JOINTS_TOPIC, f"skipped joint_states: {exc}")
             return
         self.plant.joints.tick()
+        if not self.busy.locked():
+            return                              # not calibrating: readings are not kept (memory stays flat)
         with self.lock:
             self.js_t.append(stamp_ns(m.header.stamp))
             self.js_q.append(q)
@@ -119,7 +128,9 @@ class PicmsCalibrationNode(Node):
         try:
             p = point(m)
         except MessageError as exc:
-            self.get_logger().warning(f"skipped tracker reading of {name}: {exc}")
+            self.bad_input.report(SMR_TOPIC.format(name), f"skipped tracker reading: {exc}")
+            return
+        if not self.busy.locked():
             return
         with self.lock:
             self.tracker.append((stamp_ns(m.header.stamp), name, p))
@@ -128,13 +139,19 @@ class PicmsCalibrationNode(Node):
         try:
             intr = intrinsics_from_camera_info(m)
         except MessageError as exc:
-            self.get_logger().warning(f"skipped CameraInfo of {cam}: {exc}")
+            self.bad_input.report(INFO_TOPIC.format(cam), f"skipped CameraInfo: {exc}")
             return
         with self.lock:
             self.info[cam] = intr
 
     def on_image(self, cam, m):
         self.plant.images.tick()
+        try:
+            img = image_array(m)                # checked always: malformed frames are counted
+        except MessageError as exc:
+            self.skipped += 1
+            self.bad_input.report(IMAGE_TOPIC.format(cam), f"frame skipped: {exc}")
+            return
         if not self.busy.locked():
             return                              # not calibrating: frames are not needed
         intr = self.info.get(cam)
@@ -143,8 +160,8 @@ class PicmsCalibrationNode(Node):
             self.get_logger().warning(f"frame from {cam} skipped: no CameraInfo received yet", throttle_duration_sec=5.0)
             return
         try:
-            d = detect_disc(image_array(m), intr)
-        except (MessageError, DetectionError) as exc:
+            d = detect_disc(img, intr)
+        except DetectionError as exc:
             self.skipped += 1
             self.get_logger().warning(f"frame from {cam} skipped: {exc}", throttle_duration_sec=2.0)
             return
@@ -277,6 +294,7 @@ def main(args=None):
     finally:
         code = int(getattr(node, "exit_code", 0) or 0) if node is not None else 2
         if node is not None:
+            node.bad_input.log_totals()
             node.destroy_node()
         rclpy.try_shutdown()
     return code

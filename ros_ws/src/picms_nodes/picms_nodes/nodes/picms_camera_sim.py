@@ -72,7 +72,10 @@ class PicmsCameraSim(Node):
         self.pubs = {c: self.create_publisher(Image, IMAGE_TOPIC.format(c), QOS_RELIABLE_STREAM) for c in self.index}
         self.info_pubs = {c: self.create_publisher(CameraInfo, INFO_TOPIC.format(c), QOS_LATCHED) for c in self.index}
         self.latest = None
-        self.create_subscription(JointState, JOINTS_TOPIC, self.on_joints, qos_profile_sensor_data)
+        from ct_calib_nodes.nodes.bad_input import BadInputCounter
+        self.bad_input = BadInputCounter(self.get_logger())    # counted by kind, logged rate-limited
+        self.create_subscription(JointState, JOINTS_TOPIC, self.bad_input.guard(JOINTS_TOPIC, self.on_joints),
+                                 qos_profile_sensor_data)
         self.create_timer(1.0 / float(p["rate_hz"]), self.tick)
         from .plant_hooks import SimDiagnostics
         self.diag = SimDiagnostics(self, "frames", lambda: "waiting for stage joint_states" if self.latest is None else None)
@@ -82,7 +85,7 @@ class PicmsCameraSim(Node):
         try:
             self.latest = (msg.header.stamp, joint_positions(msg))
         except MessageError as exc:
-            self.get_logger().warning(f"ignored joint_states: {exc}")
+            self.bad_input.report(JOINTS_TOPIC, f"ignored joint_states: {exc}")
 
     def tick(self):
         try:

@@ -13,6 +13,7 @@ from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import JointState
 from trajectory_msgs.msg import JointTrajectory
 
+from ct_calib_nodes.nodes.bad_input import BadInputCounter
 from ct_calib_nodes.nodes.runner import QOS_RELIABLE_STREAM, declare_parameters, run_node
 
 from ..core.instruments import StageSim
@@ -38,7 +39,8 @@ class PicmsStageSim(Node):
                               never_settles=bool(p["never_settles"]))
         self.t0 = self.get_clock().now().nanoseconds
         self.pub = self.create_publisher(JointState, JOINTS_TOPIC, QOS_RELIABLE_STREAM)
-        self.create_subscription(JointTrajectory, COMMAND_TOPIC, self.on_command, 10)
+        self.bad_input = BadInputCounter(self.get_logger())    # counted by kind, logged rate-limited
+        self.create_subscription(JointTrajectory, COMMAND_TOPIC, self.bad_input.guard(COMMAND_TOPIC, self.on_command), 10)
         self.create_timer(1.0 / float(p["rate_hz"]), self.tick)
         from .plant_hooks import SimDiagnostics
         self.diag = SimDiagnostics(self, "stage readings")
@@ -58,7 +60,7 @@ class PicmsStageSim(Node):
             if np.any(np.abs(q) > float(self.p["travel_m"])):
                 raise ValueError(f"target {q.tolist()} m beyond the travel limit {self.p['travel_m']} m")
         except ValueError as exc:
-            self.get_logger().warning(f"ignored stage command: {exc}")
+            self.bad_input.report(COMMAND_TOPIC, f"ignored stage command: {exc}")
             self.diag.bad += 1
             return
         t_end = self.stage.command(q, self._t())

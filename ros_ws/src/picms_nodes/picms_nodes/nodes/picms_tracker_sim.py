@@ -47,7 +47,10 @@ class PicmsTrackerSim(Node):
         self.pose_pub = self.create_publisher(PoseStamped, POSE_TOPIC, QOS_RELIABLE_STREAM)
         self.q = None
         self.k = 0
-        self.create_subscription(JointState, JOINTS_TOPIC, self.on_joints, qos_profile_sensor_data)
+        from ct_calib_nodes.nodes.bad_input import BadInputCounter
+        self.bad_input = BadInputCounter(self.get_logger())    # counted by kind, logged rate-limited
+        self.create_subscription(JointState, JOINTS_TOPIC, self.bad_input.guard(JOINTS_TOPIC, self.on_joints),
+                                 qos_profile_sensor_data)
         self.create_timer(1.0 / float(p["rate_hz"]), self.tick)
         from .plant_hooks import SimDiagnostics
         self.diag = SimDiagnostics(self, "tracker readings", lambda: "waiting for stage joint_states" if self.q is None else None)
@@ -56,7 +59,7 @@ class PicmsTrackerSim(Node):
         try:
             self.q = joint_positions(msg)
         except MessageError as exc:
-            self.get_logger().warning(f"ignored joint_states: {exc}")
+            self.bad_input.report(JOINTS_TOPIC, f"ignored joint_states: {exc}")
 
     def tick(self):
         if self.q is None or not self.names:

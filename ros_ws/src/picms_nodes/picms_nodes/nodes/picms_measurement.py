@@ -1,0 +1,151 @@
+"""PiCMS measurement node: runs a part program on the live cell and writes measurement.json.
+
+Service picms/run_measurement (std_srvs/srv/Trigger): runs the part program named by the
+`part_program` parameter (core.measure on a RosCell over the INTERFACES.md topics, the probe
+from `calibration_file` and CameraInfo), publishes every point as it is measured on
+picms/measurement/point (geometry_msgs/PointStamped, frame `stage` or `tracker` per `mode`),
+and the fitted result latched on picms/measurement/result (std_msgs/String, the JSON of
+measurement.json without the raw points). measurement.json (and its .crops.npz) is written
+atomically to `output_file`, only on success. `auto_start` runs once at start-up.
+A failure is logged and answered (success false, the reason); the node keeps running.
+"""
+from __future__ import annotations
+
+import json
+import pathlib
+import threading
+
+import numpy as np
+from geometry_msgs.msg import PointStamped
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.node import Node
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from ct_calib_nodes.nodes.runner import QOS_LATCHED, declare_parameters
+
+from ..core import fitting, measure, part_program
+from ..core.targeting import Probe, TargetingError
+from ..io.files import read_cell
+from .picms_calibration import _default_cell
+from .ros_cell import RosCell
+
+SERVICE = "picms/run_measurement"
+POINT_TOPIC = "picms/measurement/point"
+RESULT_TOPIC = "picms/measurement/result"
+
+PARAMS = {
+    "part_program": ("", "part_program.yaml to run [path]"),
+    "output_file": ("measurement.json", "where measurement.json is written (atomically, on success) [path]"),
+    "mode": ("stage", "stage (tracker-free, encoders) or tracker (constellation) [-]"),
+    "cell_file": ("", "picms_cell.yaml; empty = the package's config/picms_cell.yaml [path]"),
+    "calibration_file": ("picms_calibration.yaml", "the Pixel Probe calibration [path]"),
+    "cameras": (["camera_1", "camera_2", "camera_3"], "cameras of the Pixel Probe [-]"),
+    "max_moves": (4, "bound on the targeting moves per point [count]"),
+    "settle_tol_m": (2.5e-7, "encoder readings within this span count as still [m]"),
+    "settle_hold_s": (0.3, "still for this long counts as settled [s]"),
+    "tracker_window_s": (0.5, "average tracker readings over this long once settled [s]"),
+    "frame_timeout_s": (20.0, "wait this long for a settled frame from every camera [s]"),
+    "image_reliable": (True, "subscribe images reliably [-]"),
+    "ready_timeout_s": (20.0, "wait this long for joint_states, CameraInfo and the stage [s]"),
+    "auto_start": (False, "run the part program once at start-up [-]"),
+}
+
+
+class PicmsMeasurementNode(Node):
+    def __init__(self):
+        super().__init__("picms_measurement")
+        self.p = p = declare_parameters(self, PARAMS)
+        if p["mode"] not in ("stage", "tracker"):
+            raise ValueError(f"mode must be stage or tracker, got {p['mode']!r}")
+        self.cell_yaml = read_cell(p["cell_file"] or _default_cell())
+        self.cell = RosCell(self, p["cameras"], float(self.cell_yaml["stage"]["resolution"]),
+                            list(self.cell_yaml["tracker"]["constellation"]),
+                            settle_tol_m=float(p["settle_tol_m"]), settle_hold_s=float(p["settle_hold_s"]),
+                            tracker_window_s=float(p["tracker_window_s"]), image_reliable=bool(p["image_reliable"]),
+                            frame_timeout_s=float(p["frame_timeout_s"]))
+        self.busy = threading.Lock()
+        self.pub_point = self.create_publisher(PointStamped, POINT_TOPIC, 50)
+        self.pub_result = self.create_publisher(String, RESULT_TOPIC, QOS_LATCHED)
+        self.srv = self.create_service(Trigger, SERVICE, self.on_trigger, callback_group=ReentrantCallbackGroup())
+        self.get_logger().info(f"measurement ready: service {self.resolve_topic_name(SERVICE)}, "
+                               f"program {p['part_program'] or '(none set)'}")
+        if p["auto_start"]:
+            threading.Thread(target=self.run, daemon=True).start()
+
+    def on_trigger(self, _req, resp):
+        resp.success, resp.message = self.run()
+        return resp
+
+    def run(self):
+        if not self.busy.acquire(blocking=False):
+            return False, "a measurement is running"
+        try:
+            prog = part_program.load(self.p["part_program"])
+            self.cell.wait_ready(float(self.p["ready_timeout_s"]))
+            cal_path = pathlib.Path(self.p["calibration_file"])
+            import yaml
+            cal = yaml.safe_load(cal_path.read_text())
+            probe = Probe.from_calibration_yaml(cal, dict(self.cell.camera_info))
+            mode = self.p["mode"]
+
+            def progress(d):
+                if d.get("event") != "point":
+                    self.get_logger().info(str(d.get("message", d)))
+                    return
+                self.get_logger().info(f"{d['n']}/{d['of']} {d['feature']}[{d['index']}]: "
+                                       f"{'ok' if d['ok'] else 'FAILED ' + d['reason']}, {d['iterations']} "
+                                       f"triangulations, {d['elapsed_s']:.1f} s")
+                p = d["p_stage"] if mode == "stage" else d["p_tracker"]
+                if d["ok"] and p is not None and np.all(np.isfinite(p)):
+                    m = PointStamped()
+                    m.header.stamp = self.get_clock().now().to_msg()
+                    m.header.frame_id = mode
+                    m.point.x, m.point.y, m.point.z = (float(v) for v in p)
+                    self.pub_point.publish(m)
+
+            run = measure.measure(self.cell, probe, prog, progress=progress, max_iter=int(self.p["max_moves"]))
+            doc = measure.measurement_document(run, probe, mode=mode, calibration=cal)
+            out = measure.write_json_atomic(doc, self.p["output_file"])
+            measure.write_crops(run, pathlib.Path(out).with_suffix(".crops.npz"))
+            summary = {k: v for k, v in doc.items() if k not in ("points", "probe")}
+            self.pub_result.publish(String(data=json.dumps(summary, default=measure._json_default)))
+            msg = f"measured {doc['summary']['n_ok']}/{doc['summary']['n_points']} points; written {out}"
+            self.get_logger().info(msg)
+            return True, msg
+        except (part_program.PartProgramError, TargetingError, fitting.FitError, ValueError, OSError,
+                TimeoutError) as exc:
+            self.get_logger().error(f"measurement failed (nothing written): {exc}")
+            return False, str(exc)
+        finally:
+            self.busy.release()
+
+
+def main(args=None):
+    import sys
+
+    import rclpy
+    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+
+    rclpy.init(args=args)
+    node = None
+    try:
+        try:
+            node = PicmsMeasurementNode()
+        except ValueError as exc:
+            print(f"[picms_measurement] configuration error: {exc}", file=sys.stderr, flush=True)
+            return 2
+        ex = MultiThreadedExecutor(num_threads=4)
+        ex.add_node(node)
+        ex.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
