@@ -26,14 +26,15 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "ct_discrep
 
 import numpy as np  # noqa: E402
 
-from campaign import EFFECTS, analyse_campaign, analyse_truth_campaign  # noqa: E402
+from campaign import DETECTORS, EFFECTS, analyse_campaign, analyse_truth_campaign  # noqa: E402
 
 INSTR = slice(0, 7)
 
 
-def one(seed, effect, scale, views, mode):
+def one(seed, effect, scale, views, mode, det=None, image_effect=None, image_pairs=0):
     if mode == "rendered":
-        out, truth = analyse_campaign(seed, effect, scale, n_views=views)
+        out, truth = analyse_campaign(seed, effect, scale, n_views=views, det=det, image_effect=image_effect,
+                                      image_pairs=image_pairs)
         st = out["_static"]
     else:
         out, truth, st = analyse_truth_campaign(seed, effect, scale, n_views=views)
@@ -47,7 +48,7 @@ def one(seed, effect, scale, views, mode):
     f = out["findings"]
     named = [x["term"] for x in f]
     top = f[0] if f else None
-    rec = {"seed": seed, "effect": effect, "scale": scale, "outcome": st.outcome, "adequate": out["adequate"],
+    rec = {"seed": seed, "effect": effect, "physics": dict(truth["physics"]), "scale": scale, "outcome": st.outcome, "adequate": out["adequate"],
            "named": named, "top": None if top is None else top["term"],
            "top_degenerate": [] if top is None else top["degenerate_with"],
            "true_magnitude": truth["magnitude"], "est_magnitude": None,
@@ -63,6 +64,12 @@ def one(seed, effect, scale, views, mode):
            or (truth["term"] is not None and any(x["term"] != truth["term"] and truth["term"] not in x["degenerate_with"]
                                                  and x["term"] not in (f[0]["degenerate_with"] if f else [])
                                                  for x in f) and truth["term"] not in named)}
+    img = out.get("image_level")
+    if img and img.get("performed"):
+        rec["image"] = {"named": [x["term"] for x in img["findings"]], "excluded": img["excluded_shadows"],
+                        "n_shadows": img["n_shadows"], "blur_px": img["blur_sigma_px"],
+                        "terms": {k: {a: t.get(a) for a in ("value", "u", "significance_sigma", "limit")}
+                                  for k, t in img["terms"].items()}}
     for x in f:
         if x["term"] == truth["term"]:
             rec["est_magnitude"] = x["magnitude"]
@@ -80,17 +87,40 @@ def main():
     ap.add_argument("--records", help="write every campaign's record to this JSONL file")
     ap.add_argument("--mode", choices=("rendered", "truth"), default="rendered",
                     help="rendered: images through detection (slow); truth: the renderer's exact centres + noise")
+    ap.add_argument("--clean-detectors", default="1024",
+                    help="rendered clean controls cycle over these detector formats (same 0.41 m field): "
+                         "comma-separated from 1024,768,512 (renderer settings varied; 512 renders 4x faster)")
+    ap.add_argument("--clean-only", action="store_true", help="only the clean controls")
+    ap.add_argument("--clean-start", type=int, default=0, help="first clean seed offset (split a campaign)")
+    ap.add_argument("--image-pairs", type=int, default=0,
+                    help="rendered mode: also run the image-level checks on this many projection pairs")
+    ap.add_argument("--image-effects", default="",
+                    help="rendered mode: campaigns with hidden image-level physics, name:amplitude,... from "
+                         "detector_lag, scatter_glare, source_output_drift (e.g. detector_lag:0.003)")
     args = ap.parse_args()
-    effects = [e for e in args.effects.split(",") if e]
+    dets = {d.cols: d for d in DETECTORS}
+    clean_dets = [dets[int(c)] for c in args.clean_detectors.split(",") if c]
+    effects = [] if args.clean_only else [e for e in args.effects.split(",") if e]
     t0 = time.perf_counter()
     recs = []
     sink = open(args.records, "a") if args.records else None
-    jobs = [(1000 + s, e) for e in effects for s in range(args.seeds)] + [(5000 + s, "clean") for s in range(args.clean)]
+    jobs = [] if args.clean_only else [(1000 + s, e) for e in effects for s in range(args.seeds)]
+    jobs += [(5000 + s, "clean") for s in range(args.clean_start, args.clean_start + args.clean)]
+    img_eff = [(e.split(":")[0], float(e.split(":")[1])) for e in args.image_effects.split(",") if e]
+    jobs += [(7000 + s, f"image:{n}:{a}") for n, a in img_eff for s in range(args.seeds)]
     for i, (seed, eff) in enumerate(jobs):
         if args.mode == "truth":
             import time as _t  # noqa: PLC0415
             t_a = _t.perf_counter()
-        r = one(seed, eff, args.scale if eff != "clean" else 1.0, args.views, args.mode)
+        det = clean_dets[(seed - 5000) % len(clean_dets)] if eff == "clean" else None
+        if eff.startswith("image:"):
+            _, name, amp = eff.split(":")
+            r = one(seed, "clean", 1.0, args.views, args.mode, clean_dets[seed % len(clean_dets)],
+                    image_effect=(name, float(amp)), image_pairs=max(args.image_pairs, 1))
+            r["effect"] = eff
+        else:
+            r = one(seed, eff, args.scale if eff != "clean" else 1.0, args.views, args.mode, det,
+                    image_pairs=args.image_pairs)
         if args.mode == "truth":
             r["timing"]["engine_s"] = _t.perf_counter() - t_a
         recs.append(r)
@@ -127,7 +157,30 @@ def main():
             "top_or_degenerate": float(np.mean([r["top"] == e or e in r["top_degenerate"] for r in rs])),
         }
     clean = [r for r in recs if r["effect"] == "clean"]
+    image_table = {}
+    for e in sorted({r["effect"] for r in recs if "image" in r}):
+        rs = [r for r in recs if r["effect"] == e and "image" in r]
+        name = e.split(":")[1] if e.startswith("image:") else None
+        true = float(e.split(":")[2]) * 100 if name else None
+        image_table[e] = {
+            "n": len(rs), "tube_n": sum(bool(r["physics"].get("tube")) for r in rs),
+            "any_image_finding": float(np.mean([bool(r["image"]["named"]) for r in rs])),
+            "any_image_finding_no_tube": float(np.mean([bool(r["image"]["named"]) for r in rs if not r["physics"].get("tube")]))
+            if any(not r["physics"].get("tube") for r in rs) else None,
+            "true_named": None if name is None else float(np.mean([name in r["image"]["named"] for r in rs])),
+            "true_percent": true,
+            "estimates_percent": None if name is None else [r["image"]["terms"][name]["value"] for r in rs],
+            "u_percent": None if name is None else [r["image"]["terms"][name]["u"] for r in rs],
+            "feature_level_adequate": float(np.mean([r["adequate"] for r in rs])),
+            "named_terms": sorted({t for r in rs for t in r["image"]["named"]})}
     summary = {"benchmark": "validate_ct_discrepancy", "mode": args.mode, "views": args.views, "scale": args.scale, "effects": table,
+               "image_level": image_table,
+               "clean_by_detector": {str(d): {"n": sum(r["physics"].get("detector_px") == d for r in clean),
+                                              "false_alarms": sum((not r["adequate"]) and r["physics"].get("detector_px") == d
+                                                                  for r in clean)} for d in (512, 768, 1024)},
+               "clean_by_tube": {str(t): {"n": sum(bool(r["physics"].get("tube")) == t for r in clean),
+                                          "false_alarms": sum((not r["adequate"]) and bool(r["physics"].get("tube")) == t
+                                                              for r in clean)} for t in (False, True)},
                "clean_n": len(clean), "false_alarm_rate": float(np.mean([not r["adequate"] for r in clean])) if clean else None,
                "clean_false_names": sorted({t for r in clean for t in r["named"]}),
                "engine_s_median": float(np.median([r["timing"]["engine_s"] for r in recs])),

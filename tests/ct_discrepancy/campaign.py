@@ -82,19 +82,47 @@ EFFECTS = ("focal_spot_drift", "detector_bow", "encoder_eccentricity", "encoder_
            "detector_distortion")
 
 
+# detector formats with the same 0.41 m field (renderer settings varied in the rendered clean controls)
+DETECTORS = (DET, DetectorSpec(768, 768, 0.4096 / 768), DetectorSpec(512, 512, 0.0008))
+
+
+IMAGE_EFFECTS = ("detector_lag", "scatter_glare", "source_output_drift")
+
+
+def _image_effect(name, amp, img, prev, i0, tau):
+    """Hidden image-level physics on a counts frame (float): lag of the previous frame's deficit, a glare halo
+    of a 6 px Gaussian, or the open-beam intensity drifting linearly over the scan (flat field from before)."""
+    import cv2  # noqa: PLC0415
+
+    if name == "detector_lag":
+        return img if prev is None else img - amp * (i0 - prev)
+    if name == "scatter_glare":
+        return (1 - amp) * img + amp * cv2.GaussianBlur(img, (0, 0), 6.0, borderType=cv2.BORDER_REPLICATE)
+    if name == "source_output_drift":
+        return img * (1 + amp * tau)
+    raise ValueError(name)
+
+
 def render_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_views: int = 72,
-                    frame_dt_s: float = 1.0):
-    """Returns (obs, truth dict) for the first (only) stage position."""
+                    frame_dt_s: float = 1.0, det: DetectorSpec | None = None, image_effect=None, keep_frames=()):
+    """Returns (obs, truth dict) for the first (only) stage position (``det``: detector format, default DET).
+
+    ``image_effect`` (name, amplitude) from IMAGE_EFFECTS: hidden image-level physics on the counts (the
+    detection sees it too); frames whose index is in ``keep_frames`` are returned in truth["frames"] as
+    ct_image_discrepancy.ImageFrame (transmission with the campaign's flat-field level)."""
+    from ct_calib_nodes.core.ct_image_discrepancy import ImageFrame  # noqa: PLC0415
+
     rng = np.random.default_rng(seed)
+    det = det or DET
     w, srd = draw_instrument(rng)
     phys = {"blur_sigma_px": float(rng.uniform(0.4, 1.0)), "flat_field_counts": float(rng.uniform(2e4, 6e4)),
-            "tube": bool(rng.random() < 0.5)}
+            "tube": bool(rng.random() < 0.5), "detector_px": det.cols}
     duration = (n_views - 1) * frame_dt_s
     kw, term, mag = effect_settings(effect, scale, duration, rng)
     ref = helix49()
     obj = dataclasses.replace(ref, tube=ref.tube if phys["tube"] else None)
     settings = RenderSettings(flat_field_counts=phys["flat_field_counts"], blur_sigma_px=phys["blur_sigma_px"], **kw)
-    proc = FrameProcessor(ref, DET, SDD, phys["flat_field_counts"])
+    proc = FrameProcessor(ref, det, SDD, phys["flat_field_counts"])
     acc = CampaignAccumulator()
 
     def take(results):
@@ -103,28 +131,53 @@ def render_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_view
             idx = np.searchsorted(ref.ids, ids) if len(ids) else np.zeros(0, np.int64)
             acc.add_frame(fr.stamp_ns, fr.alpha_rad, fr.srd_reported_m, idx, uv, sig, 0, minor)
 
+    kept, prev = {}, None
+    keep = set(keep_frames)
     for j, a in enumerate(np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)):
         t = j * frame_dt_s - duration / 2               # renderer time 0 at mid-scan (see effect_settings)
-        frame = render_projection(w, np.zeros(6), a, obj, DET, settings, rng, time_s=t)
+        frame = render_projection(w, np.zeros(6), a, obj, det, settings, rng, time_s=t)
+        image = frame.image
+        if image_effect is not None:
+            raw = image.astype(np.float32)
+            image = np.clip(np.rint(_image_effect(image_effect[0], image_effect[1], raw, prev, phys["flat_field_counts"],
+                                                  t / duration if duration > 0 else 0.0)), 0, 65535).astype(np.uint16)
+            prev = raw
+        stamp = STAMP0_NS + int(round(t * 1e9))
+        if j in keep:
+            kept[j] = ImageFrame(image.astype(np.float32) / np.float32(phys["flat_field_counts"]), float(a), stamp)
         try:
-            take(proc.push(STAMP0_NS + int(round(t * 1e9)), frame.image, "mono16", a, srd))
+            take(proc.push(stamp, image, "mono16", a, srd))
         except FrameError:
             continue
     take(proc.flush())
     obs = acc.positions[0].observations()
     return obs, {"w": w, "srd": srd, "sdd": SDD, "effect": effect, "term": term, "magnitude": mag,
-                 "physics": phys, "ref": ref}
+                 "physics": phys, "ref": ref, "det": det, "frames": kept, "image_effect": image_effect,
+                 "scan_ns": (STAMP0_NS + int(round(-duration / 2 * 1e9)), STAMP0_NS + int(round(duration / 2 * 1e9)))}
 
 
-def analyse_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_views: int = 72, frame_dt_s: float = 1.0):
+def analyse_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_views: int = 72, frame_dt_s: float = 1.0,
+                     det: DetectorSpec | None = None, image_effect=None, image_pairs: int = 0):
+    """Rendered campaign -> detection -> static solve -> ct_discrepancy.run (+ image level with image_pairs > 0,
+    on the reference object WITHOUT its support tube: what reference_object.yaml describes)."""
+    from ct_calib_nodes.core import ct_image_discrepancy as imd  # noqa: PLC0415
+
+    pairs = imd.pick_pairs(n_views, image_pairs) if image_pairs > 0 else []
     t0 = time.perf_counter()
-    obs, truth = render_campaign(seed, effect, scale, n_views, frame_dt_s)
+    obs, truth = render_campaign(seed, effect, scale, n_views, frame_dt_s, det, image_effect,
+                                 keep_frames={k for p in pairs for k in p})
+    det = truth["det"]
     t1 = time.perf_counter()
-    st = solve_static(obs, truth["ref"].centres_of_m, DET, truth["srd"], truth["sdd"])
+    st = solve_static(obs, truth["ref"].centres_of_m, det, truth["srd"], truth["sdd"])
     t2 = time.perf_counter()
-    out = ct_discrepancy.run(obs, st, DET)
+    out = ct_discrepancy.run(obs, st, det)
     t3 = time.perf_counter()
-    out["_timing"] = {"render_detect_s": t1 - t0, "static_s": t2 - t1, "engine_s": t3 - t2}
+    if pairs:
+        ref_yaml = dataclasses.replace(truth["ref"], tube=None)
+        out["image_level"] = imd.analyse_images(truth["frames"], pairs, np.asarray(st.x[:13], float), ref_yaml, det,
+                                                truth["scan_ns"])
+    t4 = time.perf_counter()
+    out["_timing"] = {"render_detect_s": t1 - t0, "static_s": t2 - t1, "engine_s": t3 - t2, "image_s": t4 - t3}
     out["_static"] = st
     return out, truth
 

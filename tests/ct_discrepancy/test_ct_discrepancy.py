@@ -169,3 +169,30 @@ def test_whitener_inverts_the_floor_covariance():
     cov = np.diag(d ** 2) + same * (fl.tau[comp][:, None] ** 2)
     w = Whitener(ds, fl)(np.eye(cov.shape[0]))
     assert np.allclose(w @ cov @ w.T, np.eye(cov.shape[0]), atol=1e-12)
+
+
+def test_every_stage_position_is_judged_and_trends_are_fitted():
+    """Three stage positions (different instruments/SRD per seed, feature level): a focal-spot drift growing from
+    position to position (15, 30, 45 um over each scan) is named at each position with its size, and the trend
+    against SRD is reported; a clean campaign at every position names nothing."""
+    from ct_calib_nodes.core.ct_discrepancy import run_positions
+
+    pos, pos_clean, mags = [], [], []
+    for k, scale in enumerate((0.5, 1.0, 1.5)):
+        obs, tr = truth_campaign(300 + k, "focal_spot_drift", scale, n_views=48)
+        pos.append((tr["srd"], obs))
+        mags.append(tr["magnitude"])
+        obs_c, tr_c = truth_campaign(400 + k, "clean", 1.0, n_views=48)
+        pos_clean.append((tr_c["srd"], obs_c))
+    ref = helix49()
+    out = run_positions(pos, ref.centres_of_m, DET, 1.04821)
+    assert [r["position"] for r in out["positions"]] == [0, 1, 2]
+    for r, true in zip(out["positions"], mags):
+        f = r["findings"][0]
+        assert "focal_spot_drift" in [f["term"], *f["degenerate_with"]], r["verdict"]
+        if f["term"] == "focal_spot_drift":
+            assert abs(f["magnitude"] - true) < max(4 * f["magnitude_u"], 0.15 * true), (f, true)
+    clean = run_positions(pos_clean, ref.centres_of_m, DET, 1.04821)
+    assert all(r["adequate"] for r in clean["positions"]) and clean["trends"] == []
+    few = run_positions([(pos[0][0], pos[0][1].select(pos[0][1].view_index < 4))], ref.centres_of_m, DET, 1.04821)
+    assert few["positions"] == [] and "fewer than 8" in few["not_judged"][0]["why"]

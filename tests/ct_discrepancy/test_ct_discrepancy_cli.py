@@ -57,7 +57,7 @@ def test_cli_on_a_foreign_recording(tmp_path):
     bag = tmp_path / "scan"
     _write(bag)
     out = tmp_path / "disc"
-    res = _run(str(bag), "--out", str(out))
+    res = _run(str(bag), "--out", str(out), "--image-pairs", "2", "--workers", "2")
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     d = json.loads((out / "discrepancy.json").read_text())
     assert KEYS <= set(d)
@@ -68,6 +68,13 @@ def test_cli_on_a_foreign_recording(tmp_path):
     for png in ("residual_vs_angle.png", "residual_vs_time.png", "residual_detector_field.png"):
         assert (out / png).stat().st_size > 1000
     assert "[discrepancy]" in res.stdout                     # progress printed
+    # image level: the frames re-read from a recording written by other software, rendered and compared
+    img = d["image_level"]
+    assert img["performed"], img
+    assert img["pairs"] == [[0, 1], [10, 11]] and img["n_shadows"] > 20
+    assert 0.3 < img["blur_sigma_px"] < 1.2                  # the renderer's default blur is 0.7 px
+    assert all(img["terms"][t]["limit"] > 0 for t in ("scatter_glare", "detector_lag"))
+    assert any(line.startswith("## Image level") for line in report)
 
 
 def test_cli_missing_recording(tmp_path):

@@ -82,20 +82,23 @@ def test_frame_loss_and_recorder_sigkill(tmp_path, start_node, ros_node, capsys)
     # live: solved from what arrived, the loss reported
     dlog, slog = det.log(), sol.log()
     published = int(re.findall(r"'published': (\d+)", dlog)[-1])
-    assert 16 <= published <= len(frames) - dropped, dlog[-2000:]
+    # the campaign's frames (the five sent just before the kill may or may not be detected before
+    # the detector stops: they are not part of the campaign)
+    campaign = sum(1 for o in observations if o.header.stamp.sec < 1000 + 1_700_000_000)
+    assert 16 <= campaign <= len(frames) - dropped and published >= campaign, dlog[-2000:]
     assert geometries[-1].static_estimate.status.code == 0, geometries[-1].static_estimate.status.message
     assert n_frames_used > 0
     lost = re.findall(r"dropped unpaired (\{.*?\}\})", dlog)[-1]
     assert "'stage': {'count_bound': 0, 'byte_bound': 0, 'timeout': " in lost, lost
     n_lost_stage = int(re.search(r"'stage': \{[^}]*'timeout': (\d+)", lost).group(1))
     assert n_lost_stage >= dropped, lost
-    assert f"{published} frames" in slog or "converged" in slog
+    assert f"{campaign} frames" in slog or "converged" in slog
 
     # the killed recording: read up to the last complete chunk, the tail reported
     rep = ReadReport()
     msgs = list(iter_recording(bag, report=rep))
     imgs = [m for m in msgs if m.topic == IMAGE and m.msg.header.stamp.sec < 1000 + 1_700_000_000]
-    assert len(imgs) >= published, rep.summary()      # every flushed frame of the campaign is there
+    assert len(imgs) >= campaign, rep.summary()       # every flushed frame of the campaign is there
     assert rep.lost and ("truncated" in rep.lost[-1].reason or "without its data-end" in rep.lost[-1].reason)
     assert rep.lost[-1].offset + rep.lost[-1].nbytes == bag.stat().st_size
     out = tmp_path / "offline"

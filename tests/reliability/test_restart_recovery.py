@@ -183,10 +183,9 @@ def test_solver_killed_mid_campaign_resumes_bit_identical(start_node, ros_node, 
     # and it differs from A (a real new solve, not the old calibration)
     assert list(g_b.static_estimate.values) != list(g_a.static_estimate.values)
     # the error map of campaign B on geometry B: the same as the uninterrupted node's
-    b_note = f"geometry: ct/geometry stamp {g_b.header.stamp.sec * 10**9 + g_b.header.stamp.nanosec} ns"
-
     def on_b(ms):
-        return [m for m in ms if any(note.startswith(b_note) for note in m.notes)]
+        return [m for m in ms if (m.geometry_stamp.sec, m.geometry_stamp.nanosec)
+                == (g_b.header.stamp.sec, g_b.header.stamp.nanosec)]
     assert ros_node.spin_until(lambda: on_b(maps) and on_b(maps_ref), timeout=60), e3.log()[-3000:]
     m_b, m_ref = on_b(maps)[-1], on_b(maps_ref)[-1]
     assert len(m_b.positioning_m) == 2 and m_b.motions[0].status.code == 0, m_b.motions[0].status.message

@@ -26,6 +26,7 @@ setup(
             "ct_sphere_detector = ct_calib_nodes.nodes.ct_sphere_detector:main",
             "ct_geometry_solver = ct_calib_nodes.nodes.ct_geometry_solver:main",
             "ct_error_motion = ct_calib_nodes.nodes.ct_error_motion:main",
+            "ct_discrepancy_node = ct_calib_nodes.nodes.ct_discrepancy_node:main",
             "ct_demo = ct_calib_nodes.nodes.ct_demo:main",
             "ct_offline_solve = ct_calib_nodes.offline:main",
             "ct_discrepancy = ct_calib_nodes.discrepancy_cli:main",

@@ -79,6 +79,57 @@ def _plots(out, tmp: pathlib.Path, detector) -> list:
     return files
 
 
+def image_level(recording, res, instrument, ref, n_pairs: int, say, namespace: str = "/") -> dict:
+    """Image-level checks (core/ct_image_discrepancy.py) on ``n_pairs`` consecutive-projection pairs of the
+    first stage position, re-read from the recording and flat-fielded as the detector does."""
+    from ct_calib_nodes.core import ct_image_discrepancy as imd  # noqa: PLC0415
+    from ct_calib_nodes.core.detect import FrameError, to_transmission  # noqa: PLC0415
+    from ct_calib_nodes.io import namespaces  # noqa: PLC0415
+    from ct_calib_nodes.io.convert import MessageError, array_from_image, stamp_ns  # noqa: PLC0415
+    from ct_calib_nodes.io.mcap_io import ReadReport, iter_recording  # noqa: PLC0415
+
+    obs = res.acc.positions[0].observations()
+    if obs.stamp_ns is None or n_pairs <= 0:
+        return {"performed": False, "why": "no time stamps" if n_pairs > 0 else "not requested"}
+    st, first = np.unique(obs.stamp_ns, return_index=True)
+    alphas = obs.alpha_rad[first]
+    pairs = imd.pick_pairs(len(st), n_pairs)
+    want = {int(st[k]): k for p in pairs for k in p}
+    image_topic = namespaces.topic(namespace, namespaces.CT_RAW[0])
+    shape = (instrument.detector.rows, instrument.detector.cols)
+    frames, problems = {}, []
+    for m in iter_recording(recording, topics=(image_topic,), report=ReadReport(),
+                            types={image_topic: "sensor_msgs/msg/Image"}):
+        t = stamp_ns(m.msg.header.stamp)
+        if t not in want or want[t] in frames:
+            continue
+        try:
+            img, enc = array_from_image(m.msg, shape)
+            tr = to_transmission(img, enc, instrument.flat_field(), shape, instrument.dark)
+        except (MessageError, FrameError) as exc:
+            problems.append(f"frame {t} ns: {exc}")
+            continue
+        frames[want[t]] = imd.ImageFrame(tr, float(alphas[want[t]]), t)
+        if len(frames) == len(want):
+            break
+    pairs = [p for p in pairs if p[0] in frames and p[1] in frames]
+    out = imd.analyse_images(frames, pairs, np.asarray(res.static.x[:13], float), ref, instrument.detector,
+                             (int(st[0]), int(st[-1])), progress=say)
+    out["problems"] = problems
+    return out
+
+
+def image_sentence(img: dict) -> str:
+    if not img.get("performed"):
+        return ""
+    if not img["findings"]:
+        lim = img["terms"]
+        return (f" Image level: nothing named (no detector lag above {lim['detector_lag']['limit']:.2g} %, "
+                f"no scatter/glare halo above {lim['scatter_glare']['limit']:.2g} %).")
+    return " Image level: " + "; ".join(f"{f['name']} {f['value']:.3g} {f['unit']} ({f['significance_sigma']:.1f} sigma)"
+                                        for f in img["findings"]) + "."
+
+
 def write_report(out: dict, tmp: pathlib.Path, plots: list, recording) -> None:
     fb, fa = out["fit_before"], out["fit_after"]
     nf = out["noise_floor"]
@@ -111,6 +162,35 @@ def write_report(out: dict, tmp: pathlib.Path, plots: list, recording) -> None:
     lines += ["## Structure no catalogue term explains", ""]
     lines += [f"- {u['axis']}: {u['significance_sigma']:.1f} sigma, {u['amplitude_rms_px']:.3g} px rms "
               f"(absorbed by `{u['absorbed_by']}`)" for u in out["unexplained"]] or ["None."]
+    img = out.get("image_level") or {}
+    lines += ["", "## Image level (difference of recorded and rendered frames)", ""]
+    if not img.get("performed"):
+        lines.append(f"Not performed: {img.get('why', 'not requested')}.")
+    else:
+        lines += [f"{len(img['pairs'])} projection pairs, {img['n_shadows']} shadow regions ({img['excluded_shadows']} "
+                  f"left out: {img['excluded_rule']}), {img['n_pixels']} px; fitted blur {img['blur_sigma_px']:.3f} px; "
+                  f"pixel floor {img['pixel_floor_sqrtT']:.4g} sqrt(T) (from the data). Nuisance: {img['nuisance']}.", "",
+                  "| term | value | u | significance [sigma] | detection limit |", "| --- | --- | --- | --- | --- |"]
+        for k, t in img["terms"].items():
+            if t.get("value") is None:
+                lines.append(f"| {k} | - | - | - | not visible: {t.get('cannot_see')} |")
+            else:
+                lines.append(f"| {k} | {t['value']:.4g} {t['unit']} | {t['u']:.2g} | {t['significance_sigma']:.1f} | "
+                             f"{t['limit']:.3g} {t['unit']} |")
+        lines += ["", "Residual by distance from the shadow edge (whitened mean, significance): " + "; ".join(
+            f"{b['from_px']}..{b['to_px']} px: {b['mean_sigma_units']:+.3f} ({b['significance_sigma']:.1f})"
+            for b in img["residual_by_band"])]
+    sp = out.get("stage_positions")
+    if sp:
+        lines += ["", "## Further stage positions (each with its own nominal calibration)", "",
+                  "| position | SRD [mm] | adequate | named |", "| --- | --- | --- | --- |"]
+        lines += [f"| {r['position'] + 1} | {r['srd_reported_m'] * 1e3:.3f} | {r['adequate']} | "
+                  + (", ".join(f"{f['term']} {f['magnitude']:.3g} {f['unit']}" for f in r["findings"]) or "-") + " |"
+                  for r in sp["positions"]]
+        lines += [f"- position {r['position'] + 1} not judged: {r['why']}" for r in sp["not_judged"]]
+        lines += [f"- trend of {t['term']} with SRD: {t.get('slope_per_m_srd', float('nan')):.4g} {t['unit']}/m "
+                  f"({t.get('slope_significance_sigma', float('nan')):.1f} sigma) over {t['n_positions']} positions"
+                  for t in sp["trends"]]
     lines += ["", "## Detection limits of this recording (90 % power)", "", "| term | smallest detectable | reveal by |",
               "| --- | --- | --- |"]
     for k, v in out["detection_limits"].items():
@@ -134,6 +214,10 @@ def main(argv=None) -> int:
     ap.add_argument("--out", help="output directory (default <recording>_discrepancy)")
     ap.add_argument("--max-terms", type=int, default=4, help="most catalogue terms added")
     ap.add_argument("--no-plots", action="store_true")
+    ap.add_argument("--image-pairs", type=int, default=4,
+                    help="consecutive-projection pairs rendered for the image-level checks (0 = off)")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="detection worker processes (default: the cores available, at most 8)")
     args = ap.parse_args(argv)
     rec = pathlib.Path(args.recording)
     if not rec.exists():
@@ -149,7 +233,11 @@ def main(argv=None) -> int:
     say = lambda m: print(f"[discrepancy] {m}", flush=True)  # noqa: E731
     say(f"instrument file {inst_path} ({how_i}); reference object {ref_path} ({how_r}); {thermal_note}")
     t0 = time.perf_counter()
-    res = solve_recording(rec, instrument, ref, progress=say)
+    from ct_calib_nodes.offline import default_workers  # noqa: PLC0415
+
+    workers = default_workers() if args.workers is None else max(1, args.workers)
+    replay_cpu = {}
+    res = solve_recording(rec, instrument, ref, progress=say, workers=workers, timing=replay_cpu)
     for p in res.problems[:20]:
         say(f"problem: {p}")
     if res.static is None or not np.all(np.isfinite(res.static.x)) or not res.acc.positions:
@@ -160,10 +248,31 @@ def main(argv=None) -> int:
     obs = res.acc.positions[0].observations()
     out = ct_discrepancy.run(obs, res.static, instrument.detector, progress=say, max_terms=args.max_terms)
     t2 = time.perf_counter()
+    try:
+        out["image_level"] = image_level(rec, res, instrument, ref, args.image_pairs, say)
+    except Exception as exc:  # noqa: BLE001 - the feature-level verdict stands; say why the images were not judged
+        out["image_level"] = {"performed": False, "why": f"image-level check failed: {exc}"}
+    out["verdict"] += image_sentence(out["image_level"])
+    t3 = time.perf_counter()
+    if len(res.acc.positions) > 1:          # the stage-position axis: the engine at every further position
+        more = [(p.srd_reported_m, p.observations()) for p in res.acc.positions[1:]]
+        sp = ct_discrepancy.run_positions(more, ref.centres_of_m, instrument.detector, instrument.sdd_reported_m,
+                                          max_terms=args.max_terms, progress=say)
+        for r in sp["positions"] + sp["not_judged"]:
+            r["position"] += 1
+        out["stage_positions"] = sp
+        bad = [r for r in sp["positions"] if not r["adequate"]]
+        out["verdict"] += (f" Further stage positions: {len(bad)} of {len(sp['positions'])} judged inadequate"
+                           + (" (" + "; ".join(f"position {r['position'] + 1}: "
+                                                + (", ".join(f['term'] for f in r['findings']) or "unexplained structure")
+                                                for r in bad) + ")" if bad else "") + ".")
+    t3b = time.perf_counter()
     out["recording"] = str(rec)
     out["nominal_outcome"] = res.static.outcome
     out["problems"] = res.problems
-    out["timing_s"] = {"replay_and_calibration": t1 - t0, "engine": t2 - t1}
+    out["timing_s"] = {"replay_and_calibration": t1 - t0, "engine": t2 - t1, "image_level": t3 - t2,
+                       "stage_positions": t3b - t3,
+                       "replay_cpu_s": replay_cpu, "workers": workers}
     out_dir = pathlib.Path(args.out) if args.out else rec.parent / f"{rec.stem}_discrepancy"
     out_dir.mkdir(parents=True, exist_ok=True)
     tmp = pathlib.Path(tempfile.mkdtemp(prefix=".partial_", dir=out_dir))

@@ -555,3 +555,62 @@ def run(obs: CentreObservations, static, detector: DetectorSpec, *, progress=Non
 
 def significance_of(d_chi2, dof):  # re-export for callers
     return sigma_from_chi2(d_chi2, dof)
+
+
+# --------------------------------------------------------------------------- stage-position axis
+def run_positions(positions: list, centres_of_m, detector: DetectorSpec, sdd_reported_m: float, *,
+                  min_views: int = 8, max_terms: int = 4, progress=None) -> dict:
+    """The engine at every stage position: ``positions`` is a list of (srd_reported_m, CentreObservations).
+
+    Each position gets its own nominal calibration (the static solver on that position's projections, the
+    13 parameters free: the stage's error motion between positions is absorbed, what changes WITHIN a
+    position's scan is not) and its own verdict. Across positions, the magnitude of every term named at two
+    or more positions is fitted linearly against the reported SRD and against the scan's mid time, so an
+    effect that grows with magnification or over the campaign (a detector or source drift) is seen as such.
+    Returns {"positions": [...], "trends": [...], "not_judged": [...]}.
+    """
+    from .static_solver import solve_static  # noqa: PLC0415
+
+    say = progress or (lambda _m: None)
+    rows, skipped = [], []
+    for k, (srd, obs) in enumerate(positions):
+        if obs.n_views < min_views:
+            skipped.append({"position": k, "why": f"{obs.n_views} projection(s), fewer than {min_views}"})
+            continue
+        st = solve_static(obs, centres_of_m, detector, float(srd), float(sdd_reported_m))
+        if not np.all(np.isfinite(st.x[:13])) or st.outcome in ("failed", "insufficient_data", "degenerate"):
+            skipped.append({"position": k, "why": f"nominal calibration {st.outcome}: {st.message}"})
+            continue                   # a POOR_FIT calibration is judged: that is where the engine is needed
+        out = run(obs, st, detector, max_terms=max_terms)
+        t_mid = None if obs.stamp_ns is None else float(0.5 * (obs.stamp_ns.min() + obs.stamp_ns.max()))
+        rows.append({"position": k, "srd_reported_m": float(srd), "mid_stamp_ns": t_mid, "adequate": out["adequate"],
+                     "nominal_outcome": st.outcome,
+                     "verdict": out["verdict"], "noise_floor_px": out["noise_floor"]["independent_sd"],
+                     "findings": [{"term": f["term"], "magnitude": f["magnitude"], "magnitude_u": f["magnitude_u"],
+                                   "unit": f["magnitude_unit"], "significance_sigma": f["significance_sigma"],
+                                   "degenerate_with": f["degenerate_with"]} for f in out["findings"]],
+                     "unexplained": [u["axis"] for u in out["unexplained"]]})
+        say(f"stage position {k + 1} (SRD {srd * 1e3:.2f} mm): {out['verdict']}")
+    trends = []
+    terms = sorted({f["term"] for r in rows for f in r["findings"]})
+    for t in terms:
+        pts = [(r["srd_reported_m"], r["mid_stamp_ns"], f["magnitude"], f["magnitude_u"]) for r in rows
+               for f in r["findings"] if f["term"] == t]
+        if len(pts) < 2:
+            continue
+        x = np.array([p[0] for p in pts])
+        m = np.array([p[2] for p in pts])
+        u = np.maximum(np.array([p[3] for p in pts]), 1e-12)
+        tr = {"term": t, "unit": CATALOGUE_BY_ID[t].display_unit, "n_positions": len(pts),
+              "magnitudes": m.tolist(), "u": u.tolist(), "srd_reported_m": x.tolist()}
+        if np.ptp(x) > 0:
+            a = np.vstack([np.ones_like(x), x - x.mean()]).T / u[:, None]
+            cov = np.linalg.pinv(a.T @ a)
+            beta = cov @ a.T @ (m / u)
+            tr["slope_per_m_srd"] = float(beta[1])
+            tr["u_slope_per_m_srd"] = float(np.sqrt(cov[1, 1]))
+            tr["slope_significance_sigma"] = float(abs(beta[1]) / np.sqrt(cov[1, 1]))
+        trends.append(tr)
+    return {"positions": rows, "trends": trends, "not_judged": skipped,
+            "method": "per position: static solve with the 13 parameters free, then the engine; across positions: "
+                      "weighted linear fit of each repeatedly named term's magnitude against the reported SRD"}

@@ -11,13 +11,19 @@ Restart recovery (nodes/campaign_journal.py): every accepted observation message
 solver killed mid-campaign replays its journal at start (the state is rebuilt exactly, the solve
 then bit-identical to an uninterrupted run's once the frames sent while it was down are re-sent;
 the log names them), while the latest valid calibration stays published from the history.
+
+Model adequacy (issue 11): the node listens to ``ct/discrepancy`` (metro_msgs/DiscrepancyReport of
+ct_discrepancy_node). When a report on the geometry it last published says the model is inadequate
+(status POOR_FIT), it re-publishes that geometry with status POOR_FIT and the verdict as its message, so
+plant software reading ``ct/geometry`` sees that the calibration rests on a model the data contradict
+(parameter ``mark_inadequate``; false = report only).
 """
 
 from __future__ import annotations
 
 import time
 
-from metro_msgs.msg import CtGeometry, SphereObservationArray
+from metro_msgs.msg import CtGeometry, DiscrepancyReport, SphereObservationArray
 from metro_msgs.srv import TriggerSolve
 from rclpy.node import Node
 
@@ -53,7 +59,10 @@ PARAMS = {
     "idle_solve_s": (3.0, "solve the first position when no observation arrived for this long [s]; 0 = never"),
     "min_frames": (3, "fewest frames of the first position before a solve is attempted [count]"),
     "loss": ("linear", "least-squares loss: linear, huber, soft_l1, cauchy, arctan"),
+    "mark_inadequate": (True, "re-publish the geometry with status POOR_FIT when ct/discrepancy finds its model "
+                              "inadequate"),
 }
+POOR_FIT = 5
 
 
 class CtGeometrySolver(Node):
@@ -69,10 +78,13 @@ class CtGeometrySolver(Node):
         self.pub = self.create_publisher(CtGeometry, "ct/geometry", QOS_LATCHED)
         self.create_subscription(SphereObservationArray, "ct/observations",
                                  self.bad_input.guard("ct/observations", self._on_obs), QOS_RELIABLE_STREAM)
+        self.create_subscription(DiscrepancyReport, "ct/discrepancy",
+                                 self.bad_input.guard("ct/discrepancy", self._on_discrepancy), QOS_LATCHED)
         self.create_service(TriggerSolve, "~/solve", self._on_solve)
         self.create_timer(0.5, self._on_timer)
         self.history = plant.HistoryHook(self, str(self.p["history_db"]))
         self.valid_msg, self.last_status, self.last_solve_t = None, None, None
+        self.last_msg = None
         self.obs_rate = plant.RateMeter()
         from ct_calib_nodes.io.campaign_guard import CampaignGuard  # noqa: PLC0415
         self.guard = CampaignGuard(self.history.cell)
@@ -172,6 +184,23 @@ class CtGeometrySolver(Node):
             f"{p0.n_frames} frames, {res.n_obs} centres, rms {res.rms_px:.4f} px, {dt * 1e3:.0f} ms; "
             f"z_R = {res.x[0] * 1e3:.3f} mm, z_D = {res.x[3] * 1e3:.3f} mm")
         return res, res.message
+
+    def _on_discrepancy(self, rep):
+        """A verdict on the geometry last published: inadequate -> re-published with status POOR_FIT."""
+        m = self.last_msg
+        if m is None or not bool(self.p["mark_inadequate"]) or rep.status.code != POOR_FIT:
+            return
+        if (rep.header.stamp.sec, rep.header.stamp.nanosec) != (m.header.stamp.sec, m.header.stamp.nanosec):
+            return                                   # a verdict on another geometry
+        if m.static_estimate.status.code != 0:
+            return                                   # not usable anyway (or already marked)
+        m.static_estimate.status.code = POOR_FIT
+        m.static_estimate.status.message = (f"{m.static_estimate.status.message}; {rep.status.message}")[:2000]
+        if self.valid_msg is m:
+            self.valid_msg = None
+        self.last_status = m.static_estimate.status
+        self.pub.publish(m)
+        self.get_logger().error(f"the geometry of stamp {m.header.stamp.sec} s is marked POOR_FIT: {rep.verdict}")
 
     def _store(self, res, msg, p0):
         from ct_calib_nodes.io import ct_files  # noqa: PLC0415

@@ -1,0 +1,121 @@
+"""discrepancy.json dict (core/ct_discrepancy.run) -> metro_msgs/DiscrepancyReport, and the history record."""
+
+from __future__ import annotations
+
+import json
+import math
+
+KIND_DISCREPANCY = "discrepancy"
+SUCCESS, INSUFFICIENT_DATA, FAILED, POOR_FIT = 0, 3, 4, 5
+
+
+def report_json(out: dict) -> str:
+    """The report as JSON text (private arrays dropped, numpy values made plain)."""
+    from ct_calib_nodes.io.results import _plain  # noqa: PLC0415
+
+    return json.dumps(_plain({k: v for k, v in out.items() if not k.startswith("_")}))
+
+
+def status_of(out: dict) -> tuple[int, str]:
+    """(SolveStatus code, message) of a verdict: SUCCESS when adequate, POOR_FIT when the model was found inadequate."""
+    if out["adequate"]:
+        return SUCCESS, "model adequate: " + out["verdict"]
+    return POOR_FIT, "model inadequate (discrepancy engine): " + out["verdict"]
+
+
+def _f(x) -> float:
+    return float("nan") if x is None else float(x)
+
+
+def discrepancy_msg(out: dict, stamp, *, campaign_id: str = "", calibration_topic: str = ""):
+    """metro_msgs/DiscrepancyReport of a run() result; ``stamp`` is the analysed calibration's stamp."""
+    from metro_msgs.msg import DiscrepancyFinding, DiscrepancyReport  # noqa: PLC0415
+
+    m = DiscrepancyReport()
+    m.header.stamp = stamp
+    m.header.frame_id = "ct_detector"
+    m.campaign_id = campaign_id or ""
+    m.calibration_topic = calibration_topic
+    code, text = status_of(out)
+    m.status.code = code
+    m.status.message = text
+    m.status.observations = 2 * int(out.get("n_observations", 0))
+    m.status.rms_residual = _f(out["fit_before"]["rms"])
+    m.verdict = out["verdict"]
+    m.adequate = bool(out["adequate"])
+    nf = out["noise_floor"]
+    m.noise_floor_u_px, m.noise_floor_v_px = _f(nf["independent_sd"]["u"]), _f(nf["independent_sd"]["v"])
+    m.shared_floor_u_px = _f(nf["shared_per_projection_sd"]["u"])
+    m.shared_floor_v_px = _f(nf["shared_per_projection_sd"]["v"])
+    fb, fa = out["fit_before"], out["fit_after"]
+    m.rms_before_px, m.rms_after_px = _f(fb["rms"]), _f(fa["rms"])
+    m.held_out_rms_before_px, m.held_out_rms_after_px = _f(fb["held_out_rms"]), _f(fa["held_out_rms"])
+    m.chi2_dof_before, m.chi2_dof_after = _f(fb["chi2_dof"]), _f(fa["chi2_dof"])
+    for f in out["findings"]:
+        d = DiscrepancyFinding(term=f["term"], name=f["name"], mechanism=f["mechanism"],
+                               significance_sigma=_f(f["significance_sigma"]), delta_bic=_f(f["delta_bic"]),
+                               cv_gain=_f(f["cv_gain"]), magnitude=_f(f["magnitude"]),
+                               u_magnitude=_f(f.get("magnitude_u")), magnitude_unit=f["magnitude_unit"])
+        d.parameter_names = [p["name"] for p in f["parameters"]]
+        d.values = [_f(p["value"]) for p in f["parameters"]]
+        d.u_values = [_f(p["u"]) for p in f["parameters"]]
+        d.parameter_units = [p["unit"] for p in f["parameters"]]
+        d.degenerate_with = [str(x) for x in f["degenerate_with"]]
+        d.correlated_with_calibrated = [str(x) for x in f["correlated_with_calibrated"]]
+        d.separate_by = [str(x) for x in f["separate_by"]]
+        m.findings.append(d)
+    m.unexplained_axes = [u["axis"] for u in out["unexplained"]]
+    m.unexplained_sigma = [_f(u["significance_sigma"]) for u in out["unexplained"]]
+    for k, v in out["detection_limits"].items():
+        m.limit_terms.append(k)
+        lim = v.get("limit")
+        m.limit_values.append(float("nan") if lim is None or not math.isfinite(lim) else float(lim))
+        m.limit_units.append(v["unit"])
+    m.report_json = report_json(out)
+    return m
+
+
+def failed_msg(stamp, code: int, text: str, *, campaign_id: str = "", calibration_topic: str = ""):
+    """A report that says the engine could not judge (INSUFFICIENT_DATA / FAILED): adequate false, no verdict."""
+    from metro_msgs.msg import DiscrepancyReport  # noqa: PLC0415
+
+    m = DiscrepancyReport()
+    m.header.stamp = stamp
+    m.header.frame_id = "ct_detector"
+    m.campaign_id = campaign_id or ""
+    m.calibration_topic = calibration_topic
+    m.status.code = int(code)
+    m.status.message = text
+    m.verdict = "No verdict: " + text
+    m.adequate = False
+    nan = float("nan")
+    for f in ("noise_floor_u_px", "noise_floor_v_px", "shared_floor_u_px", "shared_floor_v_px", "rms_before_px",
+              "rms_after_px", "held_out_rms_before_px", "held_out_rms_after_px", "chi2_dof_before", "chi2_dof_after"):
+        setattr(m, f, nan)
+    m.report_json = json.dumps({"verdict": m.verdict, "adequate": False, "error": text})
+    return m
+
+
+def discrepancy_record(out: dict | None, *, cell: str, source: str, campaign_id=None, inputs=(), data_start_ns=None,
+                       data_end_ns=None, status: str | None = None, message: str = ""):
+    """Calibration-history record of kind 'discrepancy' (quantities: the findings' parameters and the fit)."""
+    from ct_calib_nodes.io.history import Quantity, SolveRecord  # noqa: PLC0415
+    from ct_calib_nodes.io.results import _plain  # noqa: PLC0415
+
+    q = []
+    if out is not None:
+        code, text = status_of(out)
+        status = status or ("success" if code == SUCCESS else "poor_fit")
+        message = message or text
+        for f in out["findings"]:
+            for p in f["parameters"]:
+                q.append(Quantity(name=f"{f['term']}.{p['name']}", value=float(p["value"]), u=float(p["u"]),
+                                  unit=p["unit"]))
+        for side in ("before", "after"):
+            q.append(Quantity(name=f"held_out_rms_{side}_px", value=_f(out[f"fit_{side}"]["held_out_rms"]), unit="px"))
+        result = _plain({k: v for k, v in out.items() if not k.startswith("_")})
+    else:
+        result = {"error": message}
+    return SolveRecord(cell=cell, kind=KIND_DISCREPANCY, status=status or "failed", message=message, result=result,
+                       source=source, campaign_id=campaign_id, data_start_ns=data_start_ns, data_end_ns=data_end_ns,
+                       inputs=list(inputs), quantities=q)
