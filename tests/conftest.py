@@ -4,6 +4,14 @@ import os
 
 import pytest
 
+# Parallel runs (pytest -n N, pytest-xdist): each worker gets its own DDS domain, so two ROS
+# tests running at the same time never see each other's topics. Set at import, before any test
+# starts a node or a subprocess (both read the variable when they initialise).
+_worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+if _worker.startswith("gw"):
+    _base = int(os.environ.get("ROS_DOMAIN_ID", "0") or 0)
+    os.environ["ROS_DOMAIN_ID"] = str((_base + 47 * (int(_worker[2:]) + 1)) % 101 + 1)
+
 
 @pytest.fixture(scope="session", autouse=True)
 def _session_history_db(tmp_path_factory):
