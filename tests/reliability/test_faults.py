@@ -108,7 +108,7 @@ def test_frame_loss_and_recorder_sigkill(tmp_path, start_node, ros_node, capsys)
     assert rc == 0, text[-3000:]
     assert "[offline] lost:" in text and "without a partner" in text, text[-3000:]
     res = json.loads((out / "results.json").read_text())
-    assert res["static"] is not None and res["counts"]["frames"] >= published
+    assert res["static"] is not None and res["counts"]["frames"] >= campaign
     with capsys.disabled():
         print(f"\nframes sent {len(frames) - dropped} of {len(frames)}, detected and published {published}, "
               f"stage readings without a frame {n_lost_stage}; killed recording: {rep.summary()}; "

@@ -64,7 +64,8 @@ def test_restart_republishes_latest_valid_and_failures_never_replace_it(start_no
     assert list(g1.static_estimate.values) == list(r.result.values)
     # the stamp is the end of the data (last frame: t = 223 s), and the service returns what the topic carries
     assert (g1.header.stamp.sec, r.result.header.stamp.sec) == (223, 223)
-    assert node.stop() == 0
+    rc = node.stop()
+    assert rc == 0, node.log()[-3000:]
 
     # 2. restart: the late subscriber gets the same calibration with no new data
     node = start_node("ct_calib_nodes", "ct_geometry_solver", *args, name="solver2")
@@ -91,7 +92,8 @@ def test_restart_republishes_latest_valid_and_failures_never_replace_it(start_no
                                timeout=10)
     st = [s for d in diags for s in d.status if s.name == "/ct_geometry_solver"][-1]
     assert st.level == b"\x01" and "previous valid calibration stays published" in st.message, st
-    assert node.stop() == 0
+    rc = node.stop()
+    assert rc == 0, node.log()[-3000:]
 
     with History(db) as h:
         recs = h.list(cell="/", kind="ct_geometry", with_details=True)

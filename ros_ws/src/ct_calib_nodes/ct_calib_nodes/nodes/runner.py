@@ -38,6 +38,12 @@ def run_node(node_factory, args=None) -> int:
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except Exception:                   # noqa: BLE001
+        # Ctrl-C / SIGTERM shuts the context down while the executor may be between two waits: rclpy
+        # then raises RCLError ("the given context is not valid") instead of ExternalShutdownException.
+        # That is a normal stop; anything raised while the context is still valid is a real failure.
+        if rclpy.ok():
+            raise
     finally:
         if node is not None:
             code = int(getattr(node, "exit_code", 0) or 0)
