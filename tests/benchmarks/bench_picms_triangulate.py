@@ -48,7 +48,7 @@ def main():
         rng = np.random.default_rng(700 + k)
         truth = cell.make_cell(rng, cell.make_physics(rng))
         probe = truth_probe(truth)
-        x0 = probe._xstar_body
+        x0 = probe.xstar_body
         names = probe.camera_names
         P = rng.uniform(-1e-3, 1e-3, (n, 3))
         px = {c.name: camera.project(c.pose, c.true_intrinsics, P) + rng.normal(0, sig, (n, 2)) for c in truth.cameras}

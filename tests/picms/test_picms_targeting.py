@@ -56,7 +56,7 @@ def test_triangulation_accuracy_and_covariance(seed):
         tri = targeting.triangulate(probe, px)
         e = tri.offset_stage - P
         z.append(np.linalg.solve(np.linalg.cholesky(tri.cov), e))
-        dlt_err.append(np.linalg.norm(tri.dlt_point_body - probe._xstar_body - P))
+        dlt_err.append(np.linalg.norm(tri.dlt_point_body - probe.xstar_body - P))
         assert tri.rms_px < 5 * sig
     # the vectorised form gives the same points
     Ps = rng.uniform(-1e-3, 1e-3, (20, 3))

@@ -63,8 +63,7 @@ class MeasuredPoint:
 def _stage_views(probe, q):
     """Camera poses in the stage frame at q consistent with targeting's body frame (X* body
     offset removed, so that projections of stage points match drive_to's triangulation)."""
-    xb = getattr(probe, "_xstar_body", None)
-    xs = probe.xstar_stage(q) - (np.zeros(3) if xb is None else np.asarray(xb, float))
+    xs = probe.xstar_stage(q) - probe.xstar_body
     return {c: features.View(c, features.CameraPose(np.asarray(probe.R_stage_camera[c], float),
                                                     np.asarray(probe.p_stage_centre[c], float) + xs),
                              probe.intrinsics[c]) for c in probe.camera_names}
@@ -162,7 +161,7 @@ def measure(cell, probe, program: PartProgram, *, progress=None, max_iter=4, kee
     s0 = cell.move_and_settle(np.round(np.asarray(program.origin_at_stage, float) / res) * res)
     views0 = _stage_views(probe, s0.q)
     # X* in the stage frame at s0 in the views' convention (targeting's body frame)
-    origin = probe.xstar_stage(s0.q) - np.asarray(getattr(probe, "_xstar_body", np.zeros(3)), float)
+    origin = probe.xstar_stage(s0.q) - probe.xstar_body
     pose = features.find_part(s0.images, views0, program, origin)
     if progress:
         progress({"event": "part_found", "message": pose.message})

@@ -82,6 +82,12 @@ class Probe:
         tri = _triangulate_body(self, px, {c: np.diag(np.maximum(upx[c], 1e-4) ** 2) for c in self.camera_names})
         self._xstar_body, self._xstar_cov = tri[0], tri[1]
 
+    @property
+    def xstar_body(self) -> np.ndarray:
+        """X* triangulated from its calibrated images x_j* in the camera body's stage-aligned frame
+        (the frame every triangulation here uses; offsets are taken from it)."""
+        return np.asarray(self._xstar_body, float)
+
     # -------------------------------------------------------------- construction
     @classmethod
     def from_calibration_yaml(cls, path_or_dict, camera_info: dict) -> "Probe":
