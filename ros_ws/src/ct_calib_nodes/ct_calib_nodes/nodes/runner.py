@@ -19,11 +19,13 @@ QOS_RELIABLE_STREAM = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=200,
                                  reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 
 
-def run_node(node_factory, args=None) -> int:
+def run_node(node_factory, args=None, threads: int = 0) -> int:
     """Create a node, spin it until shutdown (Ctrl-C, SIGTERM, or the node asks), clean up.
 
     ``node_factory`` is called after ``rclpy.init``. A node may set
     ``node.exit_code`` and call ``rclpy.try_shutdown()`` to end the process.
+    ``threads`` > 0 spins a MultiThreadedExecutor with that many threads (nodes whose services
+    wait on their own subscriptions), else the default single-threaded executor.
     """
     rclpy.init(args=args)
     node = None
@@ -35,7 +37,14 @@ def run_node(node_factory, args=None) -> int:
             print(f"[{getattr(node_factory, '__name__', 'node')}] configuration error: {exc}", file=sys.stderr,
                   flush=True)
             return 2
-        rclpy.spin(node)
+        if threads > 0:
+            from rclpy.executors import MultiThreadedExecutor  # noqa: PLC0415
+
+            executor = MultiThreadedExecutor(num_threads=threads)
+            executor.add_node(node)
+            executor.spin()
+        else:
+            rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:                   # noqa: BLE001

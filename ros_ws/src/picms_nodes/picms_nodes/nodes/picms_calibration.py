@@ -15,7 +15,6 @@ import time
 
 import numpy as np
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from geometry_msgs.msg import PointStamped
@@ -273,31 +272,9 @@ class PicmsCalibrationNode(Node):
 
 
 def main(args=None):
-    import sys
+    from ct_calib_nodes.nodes.runner import run_node  # noqa: PLC0415
 
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
-
-    rclpy.init(args=args)
-    node = None
-    try:
-        try:
-            node = PicmsCalibrationNode()
-        except ValueError as exc:
-            print(f"[picms_calibration] configuration error: {exc}", file=sys.stderr, flush=True)
-            return 2
-        ex = MultiThreadedExecutor(num_threads=3)
-        ex.add_node(node)
-        ex.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        code = int(getattr(node, "exit_code", 0) or 0) if node is not None else 2
-        if node is not None:
-            node.bad_input.log_totals()
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return run_node(PicmsCalibrationNode, args, threads=3)
 
 
 if __name__ == "__main__":

@@ -189,29 +189,9 @@ class PicmsTargetingNode(Node):
 
 
 def main(args=None):
-    import sys
+    from ct_calib_nodes.nodes.runner import run_node  # noqa: PLC0415
 
-    import rclpy
-    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
-
-    rclpy.init(args=args)
-    node = None
-    try:
-        try:
-            node = PicmsTargetingNode()
-        except ValueError as exc:
-            print(f"[picms_targeting] configuration error: {exc}", file=sys.stderr, flush=True)
-            return 2
-        ex = MultiThreadedExecutor(num_threads=4)
-        ex.add_node(node)
-        ex.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(PicmsTargetingNode, args, threads=4)
 
 
 if __name__ == "__main__":
