@@ -361,10 +361,20 @@ def measurement_document(run: MeasurementRun, probe, *, mode="stage", calibratio
 def write_json_atomic(doc: dict, path) -> pathlib.Path:
     path = pathlib.Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
+
+    def write(tmp):
+        with open(tmp, "w") as fh:
             json.dump(doc, fh, indent=1, default=_json_default)
+    return _replace_atomically(path, ".tmp", write)
+
+
+def _replace_atomically(path: pathlib.Path, suffix: str, write) -> pathlib.Path:
+    """write(tmp) into a temporary file beside path, then rename it over path; on any failure
+    the temporary file is removed and path is left as it was."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=suffix)
+    os.close(fd)
+    try:
+        write(tmp)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -390,13 +400,4 @@ def write_crops(run: MeasurementRun, path) -> pathlib.Path:
         for c, (x0, y0, a) in mp.crops.items():
             arrays[f"p{k}_{c}"] = a
             arrays[f"p{k}_{c}_xy"] = np.array([x0, y0])
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp.npz")
-    os.close(fd)
-    try:
-        np.savez_compressed(tmp, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    return _replace_atomically(path, ".tmp.npz", lambda tmp: np.savez_compressed(tmp, **arrays))
