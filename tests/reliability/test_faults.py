@@ -91,7 +91,10 @@ def test_frame_loss_and_recorder_sigkill(tmp_path, start_node, ros_node, capsys)
     lost = re.findall(r"dropped unpaired (\{.*?\}\})", dlog)[-1]
     assert "'stage': {'count_bound': 0, 'byte_bound': 0, 'timeout': " in lost, lost
     n_lost_stage = int(re.search(r"'stage': \{[^}]*'timeout': (\d+)", lost).group(1))
-    assert n_lost_stage >= dropped, lost
+    # the last lost frame's stage reading may not have reached its pairing timeout when the
+    # detector stops: it is then reported as still unpaired at stop, not as dropped
+    n_waiting_stage = int(re.findall(r"still unpaired at stop \{'image': \d+, 'stage': (\d+)\}", dlog)[-1])
+    assert n_lost_stage + n_waiting_stage >= dropped, dlog[-2000:]
     assert f"{campaign} frames" in slog or "converged" in slog
 
     # the killed recording: read up to the last complete chunk, the tail reported
@@ -111,5 +114,5 @@ def test_frame_loss_and_recorder_sigkill(tmp_path, start_node, ros_node, capsys)
     assert res["static"] is not None and res["counts"]["frames"] >= campaign
     with capsys.disabled():
         print(f"\nframes sent {len(frames) - dropped} of {len(frames)}, detected and published {published}, "
-              f"stage readings without a frame {n_lost_stage}; killed recording: {rep.summary()}; "
+              f"stage readings without a frame {n_lost_stage} (+{n_waiting_stage} unpaired at stop); killed recording: {rep.summary()}; "
               f"{rep.lost[-1].describe()}")

@@ -173,9 +173,12 @@ class CtSphereDetector(Node):
                 self._publish(fr)
             except Exception:  # noqa: BLE001 - the context is already shut down (Ctrl-C): nothing can be sent
                 lost += 1
+        self.pairer.expire()
         self.counts["unpaired"] = self.pairer.total_dropped()
         self.bad_input.maybe_summarise(force=True)
+        waiting = {side: self.pairer.pending(side) for side in ("image", "stage")}
         msg = (f"detector counts: {self.counts}; dropped unpaired {self.pairer.dropped}; "
+               f"still unpaired at stop {waiting}; "
                f"pairing peak {self.pairer.peak}; bad input {self.bad_input.total}")
         if lost:
             msg += (f"; {lost} frame(s) still held for identity initialisation were not published "
