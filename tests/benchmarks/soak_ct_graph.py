@@ -29,6 +29,7 @@ import json
 import os
 import pathlib
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -280,6 +281,8 @@ def main():
     ap.add_argument("--angles", type=int, default=24, help="projections per stage position (pre-rendered)")
     ap.add_argument("--step-um", type=float, default=50.0, help="reported SRD step per position [um]")
     ap.add_argument("--picms-rate", type=float, default=1.0, help="frames/s per Pixel Probe camera")
+    ap.add_argument("--keep-logs", type=pathlib.Path, default=None,
+                    help="copy the node logs (<case>_<node>.log) into this folder at the end of each case")
     args = ap.parse_args()
     os.environ.setdefault("ROS_DOMAIN_ID", str(random.randint(120, 200)))
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
@@ -302,6 +305,10 @@ def main():
                 else:
                     raise SystemExit(f"unknown case {case!r}")
                 out[case]["load_avg_end"] = os.getloadavg()
+                if args.keep_logs:
+                    args.keep_logs.mkdir(parents=True, exist_ok=True)
+                    for f in tmp.glob("*.log"):
+                        shutil.copy(f, args.keep_logs / f"{case}_{f.name}")
                 print(f"[soak] {case} done in {time.monotonic() - t:.0f} s: {json.dumps(out[case])}",
                       file=sys.stderr, flush=True)
     finally:

@@ -121,6 +121,16 @@ class IdentifySettings:
         Otherwise the upright / upside-down question is decided only when one
         pose's mean squared residual is this many times smaller than the
         other's; else the initialisation refuses, naming why.
+    follow_pose : bool
+        Refit the identification pose on the frames assigned so far whenever the
+        rotation has covered twice the arc the pose was last fitted on (and at
+        least ``follow_min_step_deg`` more), until it rests on half a turn. A pose
+        found on a few frames 1 deg apart extrapolates badly a quarter turn later;
+        without this, scans with fine angular steps lose identity mid-rotation.
+    follow_min_step_deg : float
+        Smallest extra arc that triggers a refit [deg].
+    follow_frames : int
+        Frames (evenly spread over the arc covered) used by each refit.
     """
 
     gate_px: float | None = None
@@ -134,6 +144,9 @@ class IdentifySettings:
     upside_down: bool = True
     symmetric_tolerance_m: float = 2e-6
     flip_ms_ratio: float = 3.0
+    follow_pose: bool = True
+    follow_min_step_deg: float = 10.0
+    follow_frames: int = 12
 
 
 @dataclass(frozen=True)
@@ -266,6 +279,8 @@ class SphereIdentifier:
         self._motion = None       # ... plus a motion (6,)
         self._shift = np.zeros(2)
         self._scale = 1.0
+        self._follow = None       # pose following during the rotation (see _follow_pose)
+        self.pose_refits = 0      # how many times the pose was refitted during the rotation
 
     # ------------------------------------------------------------------ model
     @property
@@ -409,6 +424,7 @@ class SphereIdentifier:
         msg = (f"{n_match} of {n_det} detections matched, rms {rms:.3f} px, {bad} unexplained"
                + (f" (next pose hypothesis: {bad + margin})" if np.isfinite(margin) else ""))
         if ok:
+            self._start_following(alphas)
             msg = "pose found: " + msg + ("; mounted upside down (turned 180 deg about its X axis)"
                                           if _is_flipped(w) else "") + note
         else:
@@ -547,7 +563,53 @@ class SphereIdentifier:
                f"pose tracked from the previous stage position ({travel * 1e3:+.3f} mm)")
         msg = ("pose found: " if ok else "pose tracking failed: ") + msg
         self._w = w if ok else None
+        if ok:
+            self._start_following(alphas)
         return InitialisationResult(w, res, rms, n_match, n_det, 0.5 * float(np.sum(res ** 2)), ok, msg, nfev)
+
+    # ------------------------------------------------------------------ pose following
+    def _start_following(self, alphas):
+        a = np.unwrap(np.asarray(alphas, dtype=np.float64))
+        self._follow = {"span": float(a.max() - a.min()) if a.size else 0.0, "alphas": [], "obs": [],
+                        "idx": []} if self.settings.follow_pose else None
+
+    def _follow_pose(self, alpha, det, idx):
+        """Keep the frame's accepted matches; refit the pose when the arc covered has grown enough."""
+        f = self._follow
+        if f is None or self._geom is not None or self._w is None or f["span"] >= np.pi:
+            return
+        ok = idx >= 0
+        if np.count_nonzero(ok) < 3:
+            return
+        f["alphas"].append(float(alpha))
+        f["obs"].append(det[ok])
+        f["idx"].append(idx[ok])
+        a = np.unwrap(np.array(f["alphas"]))
+        span = float(a.max() - a.min())
+        if span < max(2.0 * f["span"], f["span"] + np.deg2rad(self.settings.follow_min_step_deg)):
+            return
+        n = len(a)
+        pick = np.unique(np.round(np.linspace(0, n - 1, min(n, self.settings.follow_frames))).astype(int))
+        fj = np.concatenate([np.full(len(f["idx"][j]), k) for k, j in enumerate(pick)])
+        sn = np.concatenate([f["idx"][j] for j in pick])
+        obs = np.vstack([f["obs"][j] for j in pick])
+        alphas = np.array([f["alphas"][j] for j in pick])
+        w0 = self._w
+
+        def fun(x):
+            ww = w0.copy()
+            ww[_FREE] = x
+            return (forward_srf(ww, self.centres_of_m, alphas, self.detector)[fj, sn] - obs).ravel()
+
+        scale = np.array([1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-2, 1e-2, 1e-2])
+        sol = least_squares(fun, w0[_FREE], x_scale=scale, method="lm", max_nfev=200)
+        rms = float(np.sqrt(np.mean(sol.fun ** 2) * 2))
+        f["span"] = span            # this arc is done either way: the next try needs twice as much
+        if np.isfinite(rms) and rms < self._gate(w0, alphas):
+            w = w0.copy()
+            w[_FREE] = sol.x
+            self._w = w
+            self.pose_refits += 1
 
     @staticmethod
     def _score(frames, pred, gate):
@@ -673,6 +735,7 @@ class SphereIdentifier:
             pred = c0 + s * (pred - c0) + shift
         idx, reasons, dist = self._match(det, pred, r_px, gate)
         ids = np.where(idx >= 0, self.ids[np.clip(idx, 0, None)], -1)
+        self._follow_pose(float(alpha_rad), det, idx)
         return Assignment(ids.astype(np.int64), reasons, dist, pred)
 
     # ------------------------------------------------------------------ solver hand-over
@@ -698,6 +761,7 @@ class SphereIdentifier:
         if self._w is None:
             raise ValueError("no geometry: give static_w or call initialise first")
         self._shift, self._scale = np.zeros(2), 1.0
+        self._follow = None
         if motion is None and travel_m is None:
             self._geom, self._motion = None, None
             return
