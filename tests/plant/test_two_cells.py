@@ -58,6 +58,9 @@ def test_two_cells_one_domain_no_cross_talk(start_node, ros_node, tmp_path):
             "-p", f"instrument_file:={tmp_path / f'{name}_instrument.yaml'}", "-p", "n_positions:=1",
             "-p", f"projections_per_position:={N_PROJ}", "-p", "rate_hz:=0.0", "-p", f"srd_first_m:={c['srd']}",
             "-p", f"seed:={c['seed']}", "-p", f"wait_for_subscribers:={subs}",
+            # stays up after its last frame, as a real driver would, so that its diagnostics are
+            # seen even when it finishes before its first diagnostics period (it did under load)
+            "-p", "exit_when_done:=false",
             "-p", f"truth_output:={tmp_path / f'{name}_truth.yaml'}", name=f"{name}_sim")
     ok = ros_node.spin_until(lambda: all(geoms.values()), timeout=240)
     assert ok, "\n".join(f"--- {k}\n{p.log()[-1500:]}" for k, p in nodes.items() if not isinstance(p, str))
@@ -77,8 +80,9 @@ def test_two_cells_one_domain_no_cross_talk(start_node, ros_node, tmp_path):
     # diagnostics: every node of both cells reports on /diagnostics under its full name
     names = {f"/{c}/{n}" for c in CELLS for n in ("ct_sphere_detector", "ct_geometry_solver", "ct_projection_sim")}
     assert ros_node.spin_until(lambda: names <= set(diags) and all(
-        diags[f"/{c}/ct_geometry_solver"].message == "calibration valid" for c in CELLS), timeout=10), \
-        {k: (v.level, v.message) for k, v in diags.items()}
+        diags[f"/{c}/ct_geometry_solver"].message == "calibration valid" for c in CELLS), timeout=20), \
+        (f"missing: {sorted(names - set(diags))}; "
+         + "; ".join(f"{k}: {v.message}" for k, v in diags.items() if k.endswith("ct_geometry_solver")))
     for c in CELLS:
         det = diags[f"/{c}/ct_sphere_detector"]
         assert det.level == DiagnosticStatus.OK and det.hardware_id == f"/{c}", (det.level, det.message)
