@@ -2,7 +2,7 @@
 
     ct_offline_solve RECORDING --instrument ct_instrument.yaml --reference-object reference_object.yaml
                      [--out DIR] [--reference-error-map FILE] [--init-frames 6] [--loss linear]
-                     [--position-tolerance 1e-4] [--workers N]
+                     [--position-tolerance 1e-4] [--workers N] [--track N]
 
 RECORDING is one ``.mcap`` file or a rosbag2 directory that follows INTERFACES.md
 (``/ct/detector/image`` + ``/ct/stage/joint_states`` paired by stamp). Without
@@ -68,6 +68,7 @@ class OfflineResult:
     problems: list = field(default_factory=list)
     notes: list = field(default_factory=list)      # what was applied to the inputs (thermal expansion, ...)
     identity: list = field(default_factory=list)   # (reported SRD, message) of every identity initialisation
+    detection_modes: dict = field(default_factory=dict)  # windowed detection: frames 'full', 'window', 'fallback'
 
 
 class _StageClock:
@@ -86,7 +87,7 @@ class _StageClock:
 _WORKER: dict = {}
 
 
-def _worker_init(ref, detector, sdd, flat, init_frames, tolerance, dark=None):
+def _worker_init(ref, detector, sdd, flat, init_frames, tolerance, dark=None, track=None):
     try:
         import cv2  # noqa: PLC0415
 
@@ -95,6 +96,44 @@ def _worker_init(ref, detector, sdd, flat, init_frames, tolerance, dark=None):
         pass
     _WORKER["proc"] = FrameProcessor(ref, detector, sdd, flat, init_frames=init_frames, srd_tolerance_m=tolerance,
                                      dark=dark)
+    _WORKER["track"] = _tracker(_WORKER["proc"], track) if track is not None else None
+
+
+def _tracker(proc, settings):
+    from ct_calib_nodes.core.track import TrackingDetector  # noqa: PLC0415
+
+    return TrackingDetector(proc.flat, proc.dark, (proc.detector.rows, proc.detector.cols), settings,
+                            proc.detection_settings)
+
+
+def _decode_detect(proc, tracker, data, srd, key):
+    """(detections or None, problem or None, decode s, detect s) of one frame's CDR bytes or message."""
+    from ct_calib_nodes.io.raw_replay import ImageView  # noqa: PLC0415
+
+    c0 = time.process_time()
+    try:
+        msg = ImageView.from_cdr(data) if isinstance(data, (bytes, bytearray, memoryview)) else data
+        image, enc = array_from_image(msg, (proc.detector.rows, proc.detector.cols))
+    except (MessageError, ValueError) as exc:
+        return None, str(exc), time.process_time() - c0, 0.0
+    c1 = time.process_time()
+    try:
+        if tracker is None:
+            det = proc.detect(image, enc, srd)
+        else:
+            det = tracker.detect(image, enc, proc.diameter_range_px(srd), key=key)
+    except FrameError as exc:
+        return None, str(exc), c1 - c0, time.process_time() - c1
+    return det, None, c1 - c0, time.process_time() - c1
+
+
+def _worker_detect_block(tasks):
+    """One block of frames [(stamp, CDR bytes, srd), ...], the first a key frame: the results of
+    ``_decode_detect`` in order, and the tracker's counts of the block."""
+    tracker = _WORKER["track"]
+    before = dict(tracker.counts)
+    out = [_decode_detect(_WORKER["proc"], tracker, data, srd, key=i == 0) for i, (_t, data, srd) in enumerate(tasks)]
+    return out, {k: tracker.counts[k] - before[k] for k in before}
 
 
 def _worker_detect(task):
@@ -119,7 +158,7 @@ def _worker_detect(task):
 def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: str = "linear",
                     progress=None, namespace: str = "/",
                     position_tolerance_m: float = DEFAULT_POSITION_TOLERANCE_M,
-                    workers: int = 1, timing: dict | None = None) -> OfflineResult:
+                    workers: int = 1, timing: dict | None = None, tracking=None) -> OfflineResult:
     """Replay a recording through detection, identity and the solvers (no files written).
 
     ``namespace``: the cell's namespace in the recording (its raw topics are ``<ns>/ct/...``).
@@ -129,6 +168,12 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
     accumulation and the solvers stay in this process and take the frames in recording order,
     so the results are bit for bit those of ``workers`` = 1.
     ``timing``: a dict filled with CPU seconds per stage (read, decode, detect, identify, solve).
+    ``tracking``: None / False: the full detector on every frame; True or a core.track.TrackSettings:
+    windowed detection (core/track.py): the full detector on the whole frame at a key frame (the
+    first of a stage position, then every ``block_frames`` frames), on a crop round the previous
+    frame's shadows in between, the whole frame again when the crop may have missed something.
+    A block (key frame and its followers) goes to one worker, so ``workers`` > 1 gives the same
+    results bit for bit as ``workers`` = 1 with the same ``tracking``.
     """
     from ct_calib_nodes.io import namespaces  # noqa: PLC0415
 
@@ -141,6 +186,26 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
                           init_frames=init_frames, srd_tolerance_m=position_tolerance_m, dark=instrument.dark)
     images, stages = {}, {}
     t0 = time.monotonic()
+    if tracking is not None and tracking is not False:
+        from ct_calib_nodes.core.track import TrackSettings  # noqa: PLC0415
+
+        track = tracking if isinstance(tracking, TrackSettings) else TrackSettings()
+        out.detection_modes = {"full": 0, "window": 0, "fallback": 0}
+    else:
+        track = None
+    block = {"n": 0, "srd": None}
+
+    def key_frame(srd):
+        """Does a new block start at this frame? (the same rule whichever process detects)"""
+        if block["srd"] is None or abs(srd - block["srd"]) > position_tolerance_m \
+                or block["n"] >= track.block_frames:
+            block["srd"], block["n"] = srd, 0
+        block["n"] += 1
+        return block["n"] == 1
+
+    def add_modes(c):
+        for k, v in c.items():
+            out.detection_modes[k] += v
     shape = (instrument.detector.rows, instrument.detector.cols)
 
     def take(results):
@@ -222,7 +287,24 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
                 stages[t] = msg
             yield t
 
-    if workers <= 1:
+    if workers <= 1 and track is not None:
+        tracker = _tracker(proc, track)
+        for t in messages(raw=False):
+            n0 = counts["frames"]
+            got = paired(t)
+            if got is not None:
+                img, alpha, srd = got
+                det, problem, c_dec, c_det = _decode_detect(proc, tracker, img, srd, key_frame(srd))
+                clock.add("decode", c_dec)
+                clock.add("detect", c_det)
+                if problem is not None:
+                    bad_frame(t, problem)
+                else:
+                    identify(t, det, alpha, srd)
+            if counts["frames"] != n0:
+                tick()
+        add_modes(tracker.counts)
+    elif workers <= 1:
         for t in messages(raw=False):
             n0 = counts["frames"]
             got = paired(t)
@@ -260,20 +342,50 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
                 else:
                     identify(t, det, alpha, srd)
 
+        blocks = collections.deque()             # tracking: ([(stamp, alpha, srd)], future), recording order
+        pending = []                             # frames of the block being gathered: (stamp, bytes, alpha, srd)
+
+        def drain_blocks(keep):
+            while len(blocks) > keep:
+                frames, fut = blocks.popleft()
+                res, modes = fut.result()
+                add_modes(modes)
+                for (t, alpha, srd), (det, problem, c_dec, c_det) in zip(frames, res):
+                    clock.add("decode", c_dec)
+                    clock.add("detect", c_det)
+                    if problem is not None:
+                        bad_frame(t, problem)
+                    else:
+                        identify(t, det, alpha, srd)
+
+        def submit_block(pool):
+            if pending:
+                blocks.append(([(t, a, z) for t, _d, a, z in pending],
+                               pool.submit(_worker_detect_block, [(t, d, z) for t, d, _a, z in pending])))
+                pending.clear()
+                drain_blocks(2 * workers)
+
         ctx = multiprocessing.get_context("forkserver")
         with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
                                  initargs=(ref, instrument.detector, instrument.sdd_reported_m,
                                            instrument.flat_field(), init_frames, position_tolerance_m,
-                                           instrument.dark)) as pool:
+                                           instrument.dark, track)) as pool:
             for t in messages(raw=True):
                 n0 = counts["frames"]
                 got = paired(t)
                 if got is not None:
                     img, alpha, srd = got
-                    window.append((t, alpha, srd, pool.submit(_worker_detect, (t, img, srd))))
-                    drain(depth)
+                    if track is None:
+                        window.append((t, alpha, srd, pool.submit(_worker_detect, (t, img, srd))))
+                        drain(depth)
+                    else:
+                        if key_frame(srd):
+                            submit_block(pool)
+                        pending.append((t, img, alpha, srd))
                 if counts["frames"] != n0:
                     tick()
+            submit_block(pool)
+            drain_blocks(0)
             drain(0)
     c = time.process_time()
     take(proc.flush())
@@ -464,6 +576,14 @@ def repeatability_text(groups) -> str:
     return " | ".join(parts)
 
 
+def _track_settings(n: int):
+    if n <= 0:
+        return None
+    from ct_calib_nodes.core.track import TrackSettings  # noqa: PLC0415
+
+    return TrackSettings(block_frames=n)
+
+
 def default_workers() -> int:
     """Worker processes for detection: the cores this process may use, at most 8."""
     try:
@@ -543,6 +663,10 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=default_workers(),
                     help="processes that decode and detect frames (1 = all in this process; the results are "
                          "the same bit for bit) [default: the usable cores, at most 8]")
+    ap.add_argument("--track", type=int, default=0, metavar="N",
+                    help="windowed detection (core/track.py): the whole frame every N frames and at each stage "
+                         "position's first frame, a crop round the previous frame's shadows in between (0 = the "
+                         "whole frame always; results within a small fraction of the centre sd of it) [default 0]")
     ap.add_argument("--loss", default="linear", help="least-squares loss: linear, huber, soft_l1, cauchy, arctan")
     ap.add_argument("--namespace", help="the CT cell's namespace in the recording (e.g. /cell_a); default: the only "
                                         "one whose <ns>/ct/detector/image is in it")
@@ -578,7 +702,8 @@ def main(argv=None) -> int:
     try:
         res = solve_recording(rec, instrument, ref, init_frames=args.init_frames, loss=args.loss,
                               progress=lambda m: print(f"[offline] {m}", flush=True), namespace=namespace,
-                              position_tolerance_m=args.position_tolerance, workers=max(1, args.workers))
+                              position_tolerance_m=args.position_tolerance, workers=max(1, args.workers),
+                              tracking=_track_settings(args.track))
     except RecordingError as exc:      # nothing readable at all (empty folder, not MCAP)
         print(f"ct_offline_solve: {exc}", file=sys.stderr)
         return 2
