@@ -127,13 +127,16 @@ def _decode_detect(proc, tracker, data, srd, key):
     return det, None, c1 - c0, time.process_time() - c1
 
 
-def _worker_detect_block(tasks):
-    """One block of frames [(stamp, CDR bytes, srd), ...], the first a key frame: the results of
-    ``_decode_detect`` in order, and the tracker's counts of the block."""
+def _worker_detect_tracked(task):
+    """(stamp, CDR bytes, srd, key frame?) -> ``_decode_detect``'s result and the detection mode
+    ('full', 'window', 'fallback'; None when the frame did not reach detection). Frames of a block
+    come in order to the same worker (its tracker carries the previous frame's shadows)."""
+    _t, data, srd, key = task
     tracker = _WORKER["track"]
     before = dict(tracker.counts)
-    out = [_decode_detect(_WORKER["proc"], tracker, data, srd, key=i == 0) for i, (_t, data, srd) in enumerate(tasks)]
-    return out, {k: tracker.counts[k] - before[k] for k in before}
+    res = _decode_detect(_WORKER["proc"], tracker, data, srd, key)
+    mode = next((k for k in before if tracker.counts[k] != before[k]), None)
+    return (*res, mode)
 
 
 def _worker_detect(task):
@@ -334,7 +337,10 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
         def drain(keep):
             while len(window) > keep:
                 t, alpha, srd, fut = window.popleft()
-                det, problem, c_dec, c_det = fut.result()
+                res = fut.result()
+                det, problem, c_dec, c_det = res[:4]
+                if len(res) > 4 and res[4] is not None:
+                    out.detection_modes[res[4]] += 1
                 clock.add("decode", c_dec)
                 clock.add("detect", c_det)
                 if problem is not None:
@@ -342,51 +348,39 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
                 else:
                     identify(t, det, alpha, srd)
 
-        blocks = collections.deque()             # tracking: ([(stamp, alpha, srd)], future), recording order
-        pending = []                             # frames of the block being gathered: (stamp, bytes, alpha, srd)
-
-        def drain_blocks(keep):
-            while len(blocks) > keep:
-                frames, fut = blocks.popleft()
-                res, modes = fut.result()
-                add_modes(modes)
-                for (t, alpha, srd), (det, problem, c_dec, c_det) in zip(frames, res):
-                    clock.add("decode", c_dec)
-                    clock.add("detect", c_det)
-                    if problem is not None:
-                        bad_frame(t, problem)
-                    else:
-                        identify(t, det, alpha, srd)
-
-        def submit_block(pool):
-            if pending:
-                blocks.append(([(t, a, z) for t, _d, a, z in pending],
-                               pool.submit(_worker_detect_block, [(t, d, z) for t, d, _a, z in pending])))
-                pending.clear()
-                drain_blocks(2 * workers)
-
         ctx = multiprocessing.get_context("forkserver")
-        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
-                                 initargs=(ref, instrument.detector, instrument.sdd_reported_m,
-                                           instrument.flat_field(), init_frames, position_tolerance_m,
-                                           instrument.dark, track)) as pool:
+        initargs = (ref, instrument.detector, instrument.sdd_reported_m, instrument.flat_field(), init_frames,
+                    position_tolerance_m, instrument.dark, track)
+        # without tracking one pool shares the frames out; with it, one single-process pool per worker,
+        # a whole block (key frame and its followers) to the same one (round robin over blocks),
+        # enough frames in flight that every worker has a block to work on
+        pools = [ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=initargs)] \
+            if track is None else \
+            [ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_init, initargs=initargs)
+             for _ in range(workers)]
+        if track is not None:
+            depth = workers * (track.block_frames + 2)
+        n_block = -1
+        try:
             for t in messages(raw=True):
                 n0 = counts["frames"]
                 got = paired(t)
                 if got is not None:
                     img, alpha, srd = got
                     if track is None:
-                        window.append((t, alpha, srd, pool.submit(_worker_detect, (t, img, srd))))
-                        drain(depth)
+                        fut = pools[0].submit(_worker_detect, (t, img, srd))
                     else:
-                        if key_frame(srd):
-                            submit_block(pool)
-                        pending.append((t, img, alpha, srd))
+                        key = key_frame(srd)
+                        n_block += key
+                        fut = pools[n_block % workers].submit(_worker_detect_tracked, (t, img, srd, key))
+                    window.append((t, alpha, srd, fut))
+                    drain(depth)
                 if counts["frames"] != n0:
                     tick()
-            submit_block(pool)
-            drain_blocks(0)
             drain(0)
+        finally:
+            for pool in pools:
+                pool.shutdown(wait=True, cancel_futures=True)
     c = time.process_time()
     take(proc.flush())
     clock.add("identify", time.process_time() - c)
