@@ -172,7 +172,7 @@ def main():
     ap.add_argument("--workers", type=int, default=2, help="worker processes of the parallel runs [2]")
     ap.add_argument("--positions", type=int, default=4, help="stage positions of the recording [4]")
     ap.add_argument("--projections", type=int, default=180, help="projections per position [180]")
-    ap.add_argument("--track", type=int, default=30, help="windowed runs: a whole-frame key frame every N frames [30]")
+    ap.add_argument("--track", type=int, default=12, help="windowed runs: a whole-frame key frame every N frames [12]")
     ap.add_argument("--runs", default="full_sequential,full_parallel,track_sequential,track_parallel",
                     help="comma-separated subset of the four runs [all]")
     ap.add_argument("--recording", default=None,

@@ -52,14 +52,22 @@ def _same(a, b):
     return a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes()
 
 
-def test_parallel_replay_is_bit_identical(tmp_path):
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    """(recording, instrument, reference object, sequential full-detection result), shared."""
     from ct_calib_nodes.offline import solve_recording
 
     inst = ct_files.load_instrument(ct_files.default_instrument_path())
     ref = ct_files.load_reference_object(ct_files.default_reference_object_path())
-    rec = tmp_path / "small.mcap"
+    rec = tmp_path_factory.mktemp("replay") / "small.mcap"
     _record(rec, inst)
-    seq = solve_recording(rec, inst, ref, workers=1)
+    return rec, inst, ref, solve_recording(rec, inst, ref, workers=1)
+
+
+def test_parallel_replay_is_bit_identical(small):
+    from ct_calib_nodes.offline import solve_recording
+
+    rec, inst, ref, seq = small
     par = solve_recording(rec, inst, ref, workers=2)
     assert seq.counts == par.counts and not seq.problems and not par.problems, (seq.problems, par.problems)
     assert [p.n_frames for p in par.acc.positions] == [N_PROJ] * 3          # the return is a new position
@@ -93,21 +101,17 @@ def test_parallel_replay_is_bit_identical(tmp_path):
     assert "positions 1, 3" in repeatability_text(groups)
 
 
-def test_windowed_replay_parallel_is_bit_identical_and_close_to_full(tmp_path):
+def test_windowed_replay_parallel_is_bit_identical_and_close_to_full(small):
     """Windowed detection (core/track.py, blocks of 3 frames): 2 workers == 1 process bit for bit
     (a block goes to one worker); the solved static geometry agrees with the full-frame one
     within a small fraction of its standard uncertainty."""
     from ct_calib_nodes.core.track import TrackSettings
     from ct_calib_nodes.offline import solve_recording
 
-    inst = ct_files.load_instrument(ct_files.default_instrument_path())
-    ref = ct_files.load_reference_object(ct_files.default_reference_object_path())
-    rec = tmp_path / "small.mcap"
-    _record(rec, inst)
+    rec, inst, ref, full = small
     ts = TrackSettings(block_frames=3)
     seq = solve_recording(rec, inst, ref, workers=1, tracking=ts)
     par = solve_recording(rec, inst, ref, workers=2, tracking=ts)
-    full = solve_recording(rec, inst, ref, workers=1)
     assert not seq.problems and not par.problems, (seq.problems, par.problems)
     assert seq.counts == par.counts == full.counts
     # blocks start at each position's first frame and every 3 frames: 3 x ceil(8 / 3) key frames

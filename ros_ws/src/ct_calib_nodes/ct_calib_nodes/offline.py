@@ -352,15 +352,18 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
         initargs = (ref, instrument.detector, instrument.sdd_reported_m, instrument.flat_field(), init_frames,
                     position_tolerance_m, instrument.dark, track)
         # without tracking one pool shares the frames out; with it, one single-process pool per worker,
-        # a whole block (key frame and its followers) to the same one (round robin over blocks),
+        # a whole block (key frame and its followers) to the same one (the one least busy when the
+        # block starts: which worker runs a block does not change its results),
         # enough frames in flight that every worker has a block to work on
         pools = [ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=initargs)] \
             if track is None else \
             [ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_init, initargs=initargs)
              for _ in range(workers)]
         if track is not None:
-            depth = workers * (track.block_frames + 2)
-        n_block = -1
+            depth = 3 * workers * (track.block_frames + 1)      # slack for uneven workers
+        n_block = 0
+        busy = [0] * workers          # frames submitted to each worker and not yet done
+        done = collections.deque()    # worker of each finished frame (callbacks; thread-safe appends)
         try:
             for t in messages(raw=True):
                 n0 = counts["frames"]
@@ -370,9 +373,14 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
                     if track is None:
                         fut = pools[0].submit(_worker_detect, (t, img, srd))
                     else:
+                        while done:
+                            busy[done.popleft()] -= 1
                         key = key_frame(srd)
-                        n_block += key
-                        fut = pools[n_block % workers].submit(_worker_detect_tracked, (t, img, srd, key))
+                        if key:     # a new block to the worker with the fewest frames in flight
+                            n_block = min(range(workers), key=lambda i: busy[i])
+                        busy[n_block] += 1
+                        fut = pools[n_block].submit(_worker_detect_tracked, (t, img, srd, key))
+                        fut.add_done_callback(lambda _f, i=n_block: done.append(i))
                     window.append((t, alpha, srd, fut))
                     drain(depth)
                 if counts["frames"] != n0:

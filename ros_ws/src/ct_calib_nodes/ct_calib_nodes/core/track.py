@@ -45,7 +45,7 @@ from .detect import FrameError, detect_spheres
 class TrackSettings:
     """Windowed detection: when to detect the whole frame, how large the crop is."""
 
-    block_frames: int = 30          # a key frame (full detection) at least every this many frames
+    block_frames: int = 12          # a key frame (full detection) at least every this many frames
     margin_diameters: float = 0.5   # motion allowance beyond the guard band, in largest shadow diameters
     max_drop: int = 2               # fewer accepted than the previous frame minus this: full detection
 
