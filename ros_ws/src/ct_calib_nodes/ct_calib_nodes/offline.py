@@ -399,7 +399,8 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
     out.counts = counts
     out.problems += out.read_report.errors
     say(f"{counts['frames']} frames in {time.monotonic() - t0:.1f} s; "
-        f"observations per position {[p.n_obs for p in out.acc.positions]}")
+        f"observations per position {[p.n_obs for p in out.acc.positions]}"
+        + (f"; windowed detection, frames by mode {out.detection_modes}" if out.detection_modes else ""))
     from ct_calib_nodes.io.ct_history import incomplete_positions  # noqa: PLC0415
     warn = incomplete_positions(p.n_frames for p in out.acc.positions)
     if warn:
@@ -464,6 +465,8 @@ def _result_dict(res, instrument, ref, recording, files) -> dict:
                                  f"{res.acc.srd_tolerance_m:g} m from the current position's median reading starts "
                                  f"a new position; a return to an earlier SRD is a new position (a revisit)"),
          "repeatability": res.repeatability,
+         "detection": ({"windowed": True, "frames_by_mode": res.detection_modes} if res.detection_modes
+                       else {"windowed": False}),
          "identity": [{"srd_reported_m": srd, "message": m} for srd, m in res.identity],
          "static": res.static.to_dict() if res.static is not None else None, "error_motions": {}, "error_maps": {}}
     for mode, by_k in res.motions.items():
