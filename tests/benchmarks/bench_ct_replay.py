@@ -4,14 +4,20 @@ Generates (once, cached under /tmp, never in git) a recording of helix49 on its 
 INTERFACES.md fixes it: ``--positions`` stage positions x ``--projections`` projections (default
 4 x 180 = 720 frames), 1024^2 mono16 frames rendered with the default renderer physics, zstd
 chunks as the recorder writes them, stage readings on /ct/stage/joint_states. Then replays it
-through ``offline.solve_recording`` twice in the same run, so machine load affects both alike:
+through ``offline.solve_recording`` four times in the same run, so machine load affects all alike:
 
-- sequential: one process, frame after frame (workers = 1);
-- parallel: detection (image decode + detect) in ``--workers`` processes, identity and the
-  solvers in the main process, frames taken in recording order (workers = N).
+- full_sequential: one process, the full detector on every frame (workers = 1; the old path);
+- full_parallel: decode + detect in ``--workers`` processes, identity and the solvers in the main
+  process, frames taken in recording order (workers = N);
+- track_sequential / track_parallel: the same with windowed detection (core/track.py: the full
+  detector on a crop round the previous frame's shadows; the whole frame at each position's
+  first frame, every ``--track`` frames and on fallback), a block of frames per worker task.
 
-and checks that both give the same results bit for bit (every frame's centres, ids and flags; the
-static estimate and covariance; every error motion). Reports frames/s end to end and per stage
+and checks that sequential and parallel give the same results bit for bit in each mode (every
+frame's centres, ids and flags; the static estimate and covariance; every error motion), and how
+far the windowed static estimate is from the full one (in its standard uncertainties). It also
+times the detector's own stages (flat field, background, candidates, ...) on the first 30 frames,
+full frame against windowed, in this process. Reports frames/s end to end and per stage
 (read, decode, detect, identify, solve) in ms per frame (CPU time of the stage summed over the
 processes that ran it, divided by the frames), with the conditions: nproc, load average
 before and after, the benchmark's own CPU use; and the rate the measured CPU per frame allows on
@@ -19,8 +25,17 @@ an otherwise idle machine (``idle_machine_bound_frames_per_s``: the processes' c
 the total CPU per frame, capped by the main process's own read + identify + solve share; an
 upper bound that ignores inter-process transfer and memory bandwidth).
 
-Usage:  .venv/bin/python tests/benchmarks/bench_ct_replay.py [--workers 2] [--positions 4] [--projections 180]
-Prints a table, then ONE JSON line.
+Usage (idle machine, from the repository root, after ``bash scripts/setup.sh``):
+
+    source scripts/env.sh
+    python tests/benchmarks/bench_ct_replay.py                # 720 frames, 2 workers, all four runs
+    python tests/benchmarks/bench_ct_replay.py --positions 19 --projections 360   # the paper's 6840
+
+The first call renders the recording (720 frames: about 1.2 GB under /tmp, a few minutes on two
+cores); later calls reuse it. Prints progress, then ONE JSON line: per run frames/s end to end,
+CPU ms per frame per stage (read, decode, detect, identify, solve; summed over the processes),
+the main process's CPU, detection modes, and ``idle_machine_bound_frames_per_s`` (what those CPU
+times allow on an otherwise idle machine); ``bit_identical`` per mode; the detector's stages.
 """
 
 import argparse
@@ -35,6 +50,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "ros_ws", "src", "ct_calib_nodes"))
 
+from ct_calib_nodes.core.detect import detect_spheres  # noqa: E402
 from ct_calib_nodes.core.phantom import helix49  # noqa: E402
 from ct_calib_nodes.core.render import RenderSettings, render_projection  # noqa: E402
 from ct_calib_nodes.core.scenario import default_campaign  # noqa: E402
@@ -111,14 +127,62 @@ def identical(r1, r2) -> tuple:
     return True, ""
 
 
+def detect_stages(rec, n=30):
+    """CPU ms per frame of the detector's stages on the first ``n`` frames of the first position,
+    full frame against windowed (this process, one core)."""
+    from ct_calib_nodes.core.ct_pipeline import FrameProcessor
+    from ct_calib_nodes.core.track import TrackingDetector
+    from ct_calib_nodes.io.convert import array_from_image
+    from ct_calib_nodes.io.raw_replay import ImageView, iter_recording_raw
+
+    inst = ct_files.load_instrument(ct_files.default_instrument_path())
+    ref = ct_files.load_reference_object(ct_files.default_reference_object_path())
+    proc = FrameProcessor(ref, inst.detector, inst.sdd_reported_m, inst.flat_field(), dark=inst.dark)
+    shape = (inst.detector.rows, inst.detector.cols)
+    frames, srd = [], None
+    for m in iter_recording_raw(rec, topics=("/ct/detector/image", "/ct/stage/joint_states"),
+                                raw_topics=("/ct/detector/image",)):
+        if m.topic == "/ct/stage/joint_states":
+            srd = float(m.msg.position[1]) if srd is None else srd
+        else:
+            frames.append(array_from_image(ImageView.from_cdr(m.msg), shape))
+        if len(frames) == n:
+            break
+    drange = proc.diameter_range_px(srd)
+    out = {}
+    for name in ("full", "windowed"):
+        tm = {}
+        trk = TrackingDetector(proc.flat, proc.dark, shape) if name == "windowed" else None
+        c = time.process_time()
+        for i, (img, enc) in enumerate(frames):
+            if trk is None:
+                detect_spheres(img, encoding=enc, flat_field_counts=proc.flat, dark=proc.dark, expected_shape=shape,
+                               diameter_px_range=drange, timing=tm)
+            else:
+                trk.detect(img, enc, drange, key=i == 0, timing=tm)
+        total = time.process_time() - c
+        out[name] = {"total": round(1e3 * total / n, 2), **{k: round(1e3 * v / n, 2) for k, v in tm.items()}}
+        if trk is not None:
+            out[name]["modes"] = dict(trk.counts)
+    return out
+
+
 def main():
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--positions", type=int, default=4)
-    ap.add_argument("--projections", type=int, default=180)
-    ap.add_argument("--recording", default="/tmp/metro_bench_ct_replay/replay_720.mcap")
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--workers", type=int, default=2, help="worker processes of the parallel runs [2]")
+    ap.add_argument("--positions", type=int, default=4, help="stage positions of the recording [4]")
+    ap.add_argument("--projections", type=int, default=180, help="projections per position [180]")
+    ap.add_argument("--track", type=int, default=12, help="windowed runs: a whole-frame key frame every N frames [12]")
+    ap.add_argument("--runs", default="full_sequential,full_parallel,track_sequential,track_parallel",
+                    help="comma-separated subset of the four runs [all]")
+    ap.add_argument("--recording", default=None,
+                    help="recording path [/tmp/metro_bench_ct_replay/replay_<frames>.mcap, rendered if missing]")
     args = ap.parse_args()
+    from ct_calib_nodes.core.track import TrackSettings
     from ct_calib_nodes.offline import solve_recording
+
+    if args.recording is None:
+        args.recording = f"/tmp/metro_bench_ct_replay/replay_{args.positions * args.projections}.mcap"
 
     n_frames = args.positions * args.projections
     if n_frames < 720:
@@ -129,11 +193,15 @@ def main():
     load_before = os.getloadavg()
     runs = {}
     results = {}
-    for name, workers in (("sequential", 1), (f"parallel_{args.workers}", args.workers)):
+    plan = {"full_sequential": (1, None), "full_parallel": (args.workers, None),
+            "track_sequential": (1, TrackSettings(block_frames=args.track)),
+            "track_parallel": (args.workers, TrackSettings(block_frames=args.track))}
+    for name in args.runs.split(","):
+        workers, tracking = plan[name]
         timing = {}
         c0 = time.process_time()
         t0 = time.perf_counter()
-        res = solve_recording(rec, inst, ref, workers=workers, timing=timing)
+        res = solve_recording(rec, inst, ref, workers=workers, timing=timing, tracking=tracking)
         wall = time.perf_counter() - t0
         n = res.counts["frames"]
         runs[name] = {"workers": workers, "wall_s": round(wall, 3), "frames": n,
@@ -141,7 +209,7 @@ def main():
                       "main_process_cpu_s": round(time.process_time() - c0, 2),
                       "ms_per_frame": {k: round(1e3 * v / max(n, 1), 2) for k, v in timing.items()},
                       "static_success": bool(res.static is not None and res.static.success),
-                      "positions": len(res.acc.positions)}
+                      "positions": len(res.acc.positions), "detection_modes": res.detection_modes}
         # what the CPU use implies for an otherwise idle machine: every core busy with this
         # replay (total CPU per frame over the cores), and the main process's own share
         # (read + identify + solve run there when workers > 1) as a second limit
@@ -155,15 +223,29 @@ def main():
         results[name] = res
         print(f"[bench] {name}: {n} frames in {wall:.1f} s = {n / wall:.1f} frames/s; "
               f"ms/frame per stage {runs[name]['ms_per_frame']}", flush=True)
-    names = list(runs)
-    same, why = identical(results[names[0]], results[names[1]])
+    same = {}
+    for mode in ("full", "track"):
+        a, b = f"{mode}_sequential", f"{mode}_parallel"
+        if a in results and b in results:
+            ok, why = identical(results[a], results[b])
+            same[mode] = ok if ok else f"no: {why}"
+    close = None
+    if "full_sequential" in results and "track_sequential" in results:
+        f, t = results["full_sequential"].static, results["track_sequential"].static
+        if f is not None and t is not None and f.success and t.success:
+            close = round(float(np.max(np.abs(t.x - f.x) / np.sqrt(np.diag(f.covariance)))), 4)
+    stages = detect_stages(rec)
+    print(f"[bench] detector stages, CPU ms/frame on 30 frames: {stages}", flush=True)
+    base = runs.get("full_sequential", {}).get("frames_per_s")
     out = {"benchmark": "bench_ct_replay", "recording": str(rec), "frames": n_frames,
-           "image": "1024x1024 mono16, zstd chunks", "positions": args.positions,
+           "image": "1024x1024 mono16, zstd chunks", "positions": args.positions, "track_block_frames": args.track,
            "nproc": os.cpu_count(), "sched_affinity": len(os.sched_getaffinity(0)),
            "loadavg_before": [round(v, 2) for v in load_before],
            "loadavg_after": [round(v, 2) for v in os.getloadavg()],
-           "runs": runs, "speedup": round(runs[names[1]]["frames_per_s"] / runs[names[0]]["frames_per_s"], 2),
-           "bit_identical": same, "difference": why,
+           "runs": runs,
+           "speedup_vs_full_sequential": {k: round(v["frames_per_s"] / base, 2) for k, v in runs.items()} if base else None,
+           "bit_identical": same, "track_vs_full_static_max_diff_in_u": close,
+           "detect_stages_ms_per_frame": stages,
            "note": "timings on a machine shared with other jobs: compare the runs side by side"}
     print(json.dumps(out))
 

@@ -52,14 +52,22 @@ def _same(a, b):
     return a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes()
 
 
-def test_parallel_replay_is_bit_identical(tmp_path):
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    """(recording, instrument, reference object, sequential full-detection result), shared."""
     from ct_calib_nodes.offline import solve_recording
 
     inst = ct_files.load_instrument(ct_files.default_instrument_path())
     ref = ct_files.load_reference_object(ct_files.default_reference_object_path())
-    rec = tmp_path / "small.mcap"
+    rec = tmp_path_factory.mktemp("replay") / "small.mcap"
     _record(rec, inst)
-    seq = solve_recording(rec, inst, ref, workers=1)
+    return rec, inst, ref, solve_recording(rec, inst, ref, workers=1)
+
+
+def test_parallel_replay_is_bit_identical(small):
+    from ct_calib_nodes.offline import solve_recording
+
+    rec, inst, ref, seq = small
     par = solve_recording(rec, inst, ref, workers=2)
     assert seq.counts == par.counts and not seq.problems and not par.problems, (seq.problems, par.problems)
     assert [p.n_frames for p in par.acc.positions] == [N_PROJ] * 3          # the return is a new position
@@ -91,3 +99,35 @@ def test_parallel_replay_is_bit_identical(tmp_path):
     assert d["stage_positions"][2]["first_stamp_ns"] > d["stage_positions"][1]["last_stamp_ns"]
     assert d["repeatability"]["multi"]["travel"][0]["positions"] == [0, 2]
     assert "positions 1, 3" in repeatability_text(groups)
+
+
+def test_windowed_replay_parallel_is_bit_identical_and_close_to_full(small):
+    """Windowed detection (core/track.py, blocks of 3 frames): 2 workers == 1 process bit for bit
+    (a block goes to one worker); the solved static geometry agrees with the full-frame one
+    within a small fraction of its standard uncertainty."""
+    from ct_calib_nodes.core.track import TrackSettings
+    from ct_calib_nodes.offline import solve_recording
+
+    rec, inst, ref, full = small
+    ts = TrackSettings(block_frames=3)
+    seq = solve_recording(rec, inst, ref, workers=1, tracking=ts)
+    par = solve_recording(rec, inst, ref, workers=2, tracking=ts)
+    assert not seq.problems and not par.problems, (seq.problems, par.problems)
+    assert seq.counts == par.counts == full.counts
+    # blocks start at each position's first frame and every 3 frames: 3 x ceil(8 / 3) key frames
+    assert seq.detection_modes == par.detection_modes
+    # (45 deg between these frames: some move too far for the crop and fall back to the whole frame)
+    assert seq.detection_modes["full"] == 9
+    assert seq.detection_modes["window"] >= 6, seq.detection_modes
+    assert sum(seq.detection_modes.values()) == 3 * N_PROJ
+    for f1, f2 in zip(seq.frames, par.frames):
+        assert f1.stamp_ns == f2.stamp_ns and f1.reason == f2.reason
+        for name in ("ids", "flag", "centre_px", "sigma_px", "semi_axes_px", "angle_rad", "fit_rms_px"):
+            assert _same(getattr(f1, name), getattr(f2, name)), name
+    assert _same(seq.static.x, par.static.x) and _same(seq.static.covariance, par.static.covariance)
+    for mode in seq.motions:
+        for k in seq.motions[mode]:
+            assert _same(seq.motions[mode][k].x, par.motions[mode][k].x)
+    assert seq.static.success and full.static.success
+    u = np.sqrt(np.diag(full.static.covariance))
+    assert np.max(np.abs(seq.static.x - full.static.x) / u) < 0.1, np.abs(seq.static.x - full.static.x) / u

@@ -2,7 +2,7 @@
 
     ct_offline_solve RECORDING --instrument ct_instrument.yaml --reference-object reference_object.yaml
                      [--out DIR] [--reference-error-map FILE] [--init-frames 6] [--loss linear]
-                     [--position-tolerance 1e-4] [--workers N]
+                     [--position-tolerance 1e-4] [--workers N] [--track N]
 
 RECORDING is one ``.mcap`` file or a rosbag2 directory that follows INTERFACES.md
 (``/ct/detector/image`` + ``/ct/stage/joint_states`` paired by stamp). Without
@@ -68,6 +68,7 @@ class OfflineResult:
     problems: list = field(default_factory=list)
     notes: list = field(default_factory=list)      # what was applied to the inputs (thermal expansion, ...)
     identity: list = field(default_factory=list)   # (reported SRD, message) of every identity initialisation
+    detection_modes: dict = field(default_factory=dict)  # windowed detection: frames 'full', 'window', 'fallback'
 
 
 class _StageClock:
@@ -86,7 +87,7 @@ class _StageClock:
 _WORKER: dict = {}
 
 
-def _worker_init(ref, detector, sdd, flat, init_frames, tolerance, dark=None):
+def _worker_init(ref, detector, sdd, flat, init_frames, tolerance, dark=None, track=None):
     try:
         import cv2  # noqa: PLC0415
 
@@ -95,6 +96,47 @@ def _worker_init(ref, detector, sdd, flat, init_frames, tolerance, dark=None):
         pass
     _WORKER["proc"] = FrameProcessor(ref, detector, sdd, flat, init_frames=init_frames, srd_tolerance_m=tolerance,
                                      dark=dark)
+    _WORKER["track"] = _tracker(_WORKER["proc"], track) if track is not None else None
+
+
+def _tracker(proc, settings):
+    from ct_calib_nodes.core.track import TrackingDetector  # noqa: PLC0415
+
+    return TrackingDetector(proc.flat, proc.dark, (proc.detector.rows, proc.detector.cols), settings,
+                            proc.detection_settings)
+
+
+def _decode_detect(proc, tracker, data, srd, key):
+    """(detections or None, problem or None, decode s, detect s) of one frame's CDR bytes or message."""
+    from ct_calib_nodes.io.raw_replay import ImageView  # noqa: PLC0415
+
+    c0 = time.process_time()
+    try:
+        msg = ImageView.from_cdr(data) if isinstance(data, (bytes, bytearray, memoryview)) else data
+        image, enc = array_from_image(msg, (proc.detector.rows, proc.detector.cols))
+    except (MessageError, ValueError) as exc:
+        return None, str(exc), time.process_time() - c0, 0.0
+    c1 = time.process_time()
+    try:
+        if tracker is None:
+            det = proc.detect(image, enc, srd)
+        else:
+            det = tracker.detect(image, enc, proc.diameter_range_px(srd), key=key)
+    except FrameError as exc:
+        return None, str(exc), c1 - c0, time.process_time() - c1
+    return det, None, c1 - c0, time.process_time() - c1
+
+
+def _worker_detect_tracked(task):
+    """(stamp, CDR bytes, srd, key frame?) -> ``_decode_detect``'s result and the detection mode
+    ('full', 'window', 'fallback'; None when the frame did not reach detection). Frames of a block
+    come in order to the same worker (its tracker carries the previous frame's shadows)."""
+    _t, data, srd, key = task
+    tracker = _WORKER["track"]
+    before = dict(tracker.counts)
+    res = _decode_detect(_WORKER["proc"], tracker, data, srd, key)
+    mode = next((k for k in before if tracker.counts[k] != before[k]), None)
+    return (*res, mode)
 
 
 def _worker_detect(task):
@@ -119,7 +161,7 @@ def _worker_detect(task):
 def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: str = "linear",
                     progress=None, namespace: str = "/",
                     position_tolerance_m: float = DEFAULT_POSITION_TOLERANCE_M,
-                    workers: int = 1, timing: dict | None = None) -> OfflineResult:
+                    workers: int = 1, timing: dict | None = None, tracking=None) -> OfflineResult:
     """Replay a recording through detection, identity and the solvers (no files written).
 
     ``namespace``: the cell's namespace in the recording (its raw topics are ``<ns>/ct/...``).
@@ -129,6 +171,12 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
     accumulation and the solvers stay in this process and take the frames in recording order,
     so the results are bit for bit those of ``workers`` = 1.
     ``timing``: a dict filled with CPU seconds per stage (read, decode, detect, identify, solve).
+    ``tracking``: None / False: the full detector on every frame; True or a core.track.TrackSettings:
+    windowed detection (core/track.py): the full detector on the whole frame at a key frame (the
+    first of a stage position, then every ``block_frames`` frames), on a crop round the previous
+    frame's shadows in between, the whole frame again when the crop may have missed something.
+    A block (key frame and its followers) goes to one worker, so ``workers`` > 1 gives the same
+    results bit for bit as ``workers`` = 1 with the same ``tracking``.
     """
     from ct_calib_nodes.io import namespaces  # noqa: PLC0415
 
@@ -141,6 +189,26 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
                           init_frames=init_frames, srd_tolerance_m=position_tolerance_m, dark=instrument.dark)
     images, stages = {}, {}
     t0 = time.monotonic()
+    if tracking is not None and tracking is not False:
+        from ct_calib_nodes.core.track import TrackSettings  # noqa: PLC0415
+
+        track = tracking if isinstance(tracking, TrackSettings) else TrackSettings()
+        out.detection_modes = {"full": 0, "window": 0, "fallback": 0}
+    else:
+        track = None
+    block = {"n": 0, "srd": None}
+
+    def key_frame(srd):
+        """Does a new block start at this frame? (the same rule whichever process detects)"""
+        if block["srd"] is None or abs(srd - block["srd"]) > position_tolerance_m \
+                or block["n"] >= track.block_frames:
+            block["srd"], block["n"] = srd, 0
+        block["n"] += 1
+        return block["n"] == 1
+
+    def add_modes(c):
+        for k, v in c.items():
+            out.detection_modes[k] += v
     shape = (instrument.detector.rows, instrument.detector.cols)
 
     def take(results):
@@ -222,7 +290,24 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
                 stages[t] = msg
             yield t
 
-    if workers <= 1:
+    if workers <= 1 and track is not None:
+        tracker = _tracker(proc, track)
+        for t in messages(raw=False):
+            n0 = counts["frames"]
+            got = paired(t)
+            if got is not None:
+                img, alpha, srd = got
+                det, problem, c_dec, c_det = _decode_detect(proc, tracker, img, srd, key_frame(srd))
+                clock.add("decode", c_dec)
+                clock.add("detect", c_det)
+                if problem is not None:
+                    bad_frame(t, problem)
+                else:
+                    identify(t, det, alpha, srd)
+            if counts["frames"] != n0:
+                tick()
+        add_modes(tracker.counts)
+    elif workers <= 1:
         for t in messages(raw=False):
             n0 = counts["frames"]
             got = paired(t)
@@ -252,7 +337,10 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
         def drain(keep):
             while len(window) > keep:
                 t, alpha, srd, fut = window.popleft()
-                det, problem, c_dec, c_det = fut.result()
+                res = fut.result()
+                det, problem, c_dec, c_det = res[:4]
+                if len(res) > 4 and res[4] is not None:
+                    out.detection_modes[res[4]] += 1
                 clock.add("decode", c_dec)
                 clock.add("detect", c_det)
                 if problem is not None:
@@ -261,20 +349,46 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
                     identify(t, det, alpha, srd)
 
         ctx = multiprocessing.get_context("forkserver")
-        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
-                                 initargs=(ref, instrument.detector, instrument.sdd_reported_m,
-                                           instrument.flat_field(), init_frames, position_tolerance_m,
-                                           instrument.dark)) as pool:
+        initargs = (ref, instrument.detector, instrument.sdd_reported_m, instrument.flat_field(), init_frames,
+                    position_tolerance_m, instrument.dark, track)
+        # without tracking one pool shares the frames out; with it, one single-process pool per worker,
+        # a whole block (key frame and its followers) to the same one (the one least busy when the
+        # block starts: which worker runs a block does not change its results),
+        # enough frames in flight that every worker has a block to work on
+        pools = [ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=initargs)] \
+            if track is None else \
+            [ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_init, initargs=initargs)
+             for _ in range(workers)]
+        if track is not None:
+            depth = 3 * workers * (track.block_frames + 1)      # slack for uneven workers
+        n_block = 0
+        busy = [0] * workers          # frames submitted to each worker and not yet done
+        done = collections.deque()    # worker of each finished frame (callbacks; thread-safe appends)
+        try:
             for t in messages(raw=True):
                 n0 = counts["frames"]
                 got = paired(t)
                 if got is not None:
                     img, alpha, srd = got
-                    window.append((t, alpha, srd, pool.submit(_worker_detect, (t, img, srd))))
+                    if track is None:
+                        fut = pools[0].submit(_worker_detect, (t, img, srd))
+                    else:
+                        while done:
+                            busy[done.popleft()] -= 1
+                        key = key_frame(srd)
+                        if key:     # a new block to the worker with the fewest frames in flight
+                            n_block = min(range(workers), key=lambda i: busy[i])
+                        busy[n_block] += 1
+                        fut = pools[n_block].submit(_worker_detect_tracked, (t, img, srd, key))
+                        fut.add_done_callback(lambda _f, i=n_block: done.append(i))
+                    window.append((t, alpha, srd, fut))
                     drain(depth)
                 if counts["frames"] != n0:
                     tick()
             drain(0)
+        finally:
+            for pool in pools:
+                pool.shutdown(wait=True, cancel_futures=True)
     c = time.process_time()
     take(proc.flush())
     clock.add("identify", time.process_time() - c)
@@ -285,7 +399,8 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
     out.counts = counts
     out.problems += out.read_report.errors
     say(f"{counts['frames']} frames in {time.monotonic() - t0:.1f} s; "
-        f"observations per position {[p.n_obs for p in out.acc.positions]}")
+        f"observations per position {[p.n_obs for p in out.acc.positions]}"
+        + (f"; windowed detection, frames by mode {out.detection_modes}" if out.detection_modes else ""))
     from ct_calib_nodes.io.ct_history import incomplete_positions  # noqa: PLC0415
     warn = incomplete_positions(p.n_frames for p in out.acc.positions)
     if warn:
@@ -350,6 +465,8 @@ def _result_dict(res, instrument, ref, recording, files) -> dict:
                                  f"{res.acc.srd_tolerance_m:g} m from the current position's median reading starts "
                                  f"a new position; a return to an earlier SRD is a new position (a revisit)"),
          "repeatability": res.repeatability,
+         "detection": ({"windowed": True, "frames_by_mode": res.detection_modes} if res.detection_modes
+                       else {"windowed": False}),
          "identity": [{"srd_reported_m": srd, "message": m} for srd, m in res.identity],
          "static": res.static.to_dict() if res.static is not None else None, "error_motions": {}, "error_maps": {}}
     for mode, by_k in res.motions.items():
@@ -464,6 +581,14 @@ def repeatability_text(groups) -> str:
     return " | ".join(parts)
 
 
+def _track_settings(n: int):
+    if n <= 0:
+        return None
+    from ct_calib_nodes.core.track import TrackSettings  # noqa: PLC0415
+
+    return TrackSettings(block_frames=n)
+
+
 def default_workers() -> int:
     """Worker processes for detection: the cores this process may use, at most 8."""
     try:
@@ -543,6 +668,10 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=default_workers(),
                     help="processes that decode and detect frames (1 = all in this process; the results are "
                          "the same bit for bit) [default: the usable cores, at most 8]")
+    ap.add_argument("--track", type=int, default=0, metavar="N",
+                    help="windowed detection (core/track.py): the whole frame every N frames and at each stage "
+                         "position's first frame, a crop round the previous frame's shadows in between (0 = the "
+                         "whole frame always; results within a small fraction of the centre sd of it) [default 0]")
     ap.add_argument("--loss", default="linear", help="least-squares loss: linear, huber, soft_l1, cauchy, arctan")
     ap.add_argument("--namespace", help="the CT cell's namespace in the recording (e.g. /cell_a); default: the only "
                                         "one whose <ns>/ct/detector/image is in it")
@@ -578,7 +707,8 @@ def main(argv=None) -> int:
     try:
         res = solve_recording(rec, instrument, ref, init_frames=args.init_frames, loss=args.loss,
                               progress=lambda m: print(f"[offline] {m}", flush=True), namespace=namespace,
-                              position_tolerance_m=args.position_tolerance, workers=max(1, args.workers))
+                              position_tolerance_m=args.position_tolerance, workers=max(1, args.workers),
+                              tracking=_track_settings(args.track))
     except RecordingError as exc:      # nothing readable at all (empty folder, not MCAP)
         print(f"ct_offline_solve: {exc}", file=sys.stderr)
         return 2
