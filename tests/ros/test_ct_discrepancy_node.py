@@ -102,3 +102,24 @@ def test_discrepancy_node_judges_each_solve_and_marks_the_geometry(start_node, r
         ros_node.spin_until(lambda: False, timeout=0.25)
     assert recs["/clean"].status == "success" and recs["/drift"].status == "poor_fit"
     assert recs["/drift"].result["findings"][0]["term"] == top.term
+    # the geometry's own history record carries the verdict: a superseding poor_fit record, original kept
+    with History(db) as h:
+        geo = h.list(cell="/drift", kind="ct_geometry", newest_first=True, with_details=True)
+        assert [r.status for r in geo[:2]] == ["poor_fit", "success"], [(r.id, r.status) for r in geo]
+        assert geo[0].result["supersedes"]["uid"] == geo[1].uid and h.superseded(geo[1].uid)
+        assert h.latest_valid("/drift", "ct_geometry") is None
+        assert h.latest_valid("/clean", "ct_geometry") is not None
+    # a restarted (killed) solver re-publishes POOR_FIT, not the original SUCCESS
+    geom_drift = nodes["/drift"][0]
+    geom_drift.proc.kill()                  # a crash, not a clean stop
+    geom_drift.proc.wait(timeout=15)
+    after = []
+    ros_node.create_subscription(CtGeometry, "/drift/ct/geometry", after.append, QOS_LATCHED)
+    geom2 = start_node("ct_calib_nodes", "ct_geometry_solver", "--ros-args", "-r", "__ns:=/drift",
+                       "-p", f"history_db:={db}", "-p", "idle_solve_s:=1.0", name="geomdrift2")
+    assert ros_node.spin_until(lambda: any(m.header.stamp == g.header.stamp for m in after), timeout=60), geom2.log()
+    ros_node.spin_until(lambda: False, timeout=3.0)        # nothing turns it back to SUCCESS
+    mine = [m for m in after if m.header.stamp == g.header.stamp]
+    assert mine and all(m.static_estimate.status.code == SolveStatus.POOR_FIT for m in mine), \
+        ([m.static_estimate.status.code for m in mine], geom2.log())
+    assert geom2.proc.poll() is None, geom2.log()

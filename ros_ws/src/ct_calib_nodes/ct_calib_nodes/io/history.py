@@ -397,12 +397,41 @@ class History:
         return [self._row_to_record(r, with_details) for r in self._con.execute(q, args).fetchall()]
 
     def latest_valid(self, cell, kind, final_only: bool = False) -> SolveRecord | None:
-        """The newest SUCCESS solve of a cell and kind (a failed solve never hides it)."""
-        q = "SELECT * FROM solves WHERE cell = ? AND kind = ? AND status = 'success'"
+        """The newest SUCCESS solve of a cell and kind (a failed solve never hides it) that no later
+        record supersedes (:meth:`supersede`: e.g. a geometry later found inadequate)."""
+        q = ("SELECT * FROM solves WHERE cell = ? AND kind = ? AND status = 'success' AND uid NOT IN "
+             "(SELECT ref_uid FROM inputs WHERE role = 'supersedes' AND ref_uid IS NOT NULL)")
         if final_only:
             q += " AND final = 1"
         row = self._con.execute(q + " ORDER BY id DESC LIMIT 1", (cell_name(cell), kind)).fetchone()
         return None if row is None else self._row_to_record(row)
+
+    def supersede(self, original: SolveRecord, status, message: str, extra: dict | None = None) -> SolveRecord:
+        """Append a record that supersedes ``original`` with a new status (a verdict that came after
+        the solve, e.g. ``poor_fit`` from the discrepancy engine). The original row is never changed:
+        the new one copies its quantities, stamps and inputs, names it (input role ``supersedes``,
+        ``ref_uid``) and carries ``result['supersedes']`` plus ``extra`` (e.g. the re-published message)."""
+        if not original.uid:
+            raise ValueError("supersede: the original record has no uid (was it stored?)")
+        result = dict(original.result)
+        result.pop("ros_msg", None)
+        result["supersedes"] = {"uid": original.uid, "id": original.id, "status": original.status,
+                                "message": original.message}
+        result.update(extra or {})
+        rec = SolveRecord(cell=original.cell, kind=original.kind, status=status, result=result,
+                          source=original.source, message=message, campaign_id=original.campaign_id,
+                          final=original.final, data_start_ns=original.data_start_ns,
+                          data_end_ns=original.data_end_ns,
+                          inputs=[Input(role="supersedes", ref_uid=original.uid)]
+                          + [i for i in original.inputs if i.role != "supersedes"],
+                          quantities=list(original.quantities))
+        return self.record(rec)
+
+    def superseded(self, uid: str) -> bool:
+        """Whether a later record supersedes the solve ``uid``."""
+        row = self._con.execute("SELECT 1 FROM inputs WHERE role = 'supersedes' AND ref_uid = ? LIMIT 1",
+                                (uid,)).fetchone()
+        return row is not None
 
     def trend(self, name: str, cell=None, kind=None, position=None, valid_only: bool = True) -> list:
         """[(solve id, created_ns, value, u, unit, campaign_id)] of one quantity over time."""

@@ -45,6 +45,10 @@ def time_from_ns(ns):
     return Time(sec=int(ns) // 1_000_000_000, nanosec=int(ns) % 1_000_000_000)
 
 
+def _stamp_ns(msg) -> int:
+    return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+
+
 def plant_input_topic(topic, pos):
     from ct_calib_nodes.io.history import Input  # noqa: PLC0415
 
@@ -88,12 +92,24 @@ class CtGeometrySolver(Node):
         self.obs_rate = plant.RateMeter()
         from ct_calib_nodes.io.campaign_guard import CampaignGuard  # noqa: PLC0415
         self.guard = CampaignGuard(self.history.cell)
-        rec, msg = self.history.latest_msg(KIND, CtGeometry, MSG_TYPE)
-        if msg is not None:      # a late subscriber or a restart never sees "no calibration"
-            self.valid_msg = msg
+        self.last_rec, self.marked = None, {}      # stored record of last_msg; stamp -> restored POOR_FIT msg
+        rec, msg = self.history.latest_published(KIND, CtGeometry, MSG_TYPE)
+        if msg is not None and msg.static_estimate.status.code == 0:
+            # a late subscriber or a restart never sees "no calibration"
+            self.valid_msg = self.last_msg = msg     # a verdict on it (same stamp) still marks it
+            self.last_rec = rec
             self.pub.publish(msg)
             self.get_logger().info(f"re-published the latest valid calibration of cell {self.history.cell}: "
                                    f"history solve {rec.id} of {rec.created_utc} (campaign {rec.campaign_id})")
+        elif msg is not None:
+            # the last geometry published was found inadequate after its solve: it stays marked
+            self.marked[(msg.header.stamp.sec, msg.header.stamp.nanosec)] = msg
+            self.last_msg, self.last_status = msg, msg.static_estimate.status
+            self.pub.publish(msg)
+            self.get_logger().error(f"re-published the latest calibration of cell {self.history.cell} as "
+                                    f"{STATUS_NAMES.get(msg.static_estimate.status.code, '?')}: history solve {rec.id} "
+                                    f"(superseding solve {rec.result['supersedes'].get('id')}): "
+                                    f"{msg.static_estimate.status.message}")
         self.final_journaled = False
         self.journal = CampaignJournal(self, "ct_geometry_solver", SphereObservationArray, str(self.p["history_db"]))
         if self.journal.replay(self._on_obs):
@@ -162,6 +178,11 @@ class CtGeometrySolver(Node):
                            campaign_id=self.guard.campaign_id)
         self.last_msg = msg
         if quiet:        # re-solved from the journal: published and stored before the restart
+            marked = self.marked.get((msg.header.stamp.sec, msg.header.stamp.nanosec))
+            if marked is not None:       # found inadequate before the restart: stays POOR_FIT
+                self.last_msg = marked
+                self.last_status, self.last_solve_t = marked.static_estimate.status, time.monotonic()
+                return res, marked.static_estimate.status.message
             if self.valid_msg is None and res.success:
                 self.pub.publish(msg)
                 self.valid_msg = msg
@@ -200,6 +221,11 @@ class CtGeometrySolver(Node):
             self.valid_msg = None
         self.last_status = m.static_estimate.status
         self.pub.publish(m)
+        # the history carries the verdict: a superseding poor_fit record (the original kept), so a
+        # restarted solver re-publishes POOR_FIT, and latest_valid no longer returns this geometry
+        if self.last_rec is not None and self.last_rec.data_end_ns == _stamp_ns(m):
+            self.history.supersede(self.last_rec, "poor_fit", m.static_estimate.status.message, msg=m,
+                                   type_name=MSG_TYPE, extra={"verdict": str(rep.verdict)})
         self.get_logger().error(f"the geometry of stamp {m.header.stamp.sec} s is marked POOR_FIT: {rep.verdict}")
 
     def _store(self, res, msg, p0):
@@ -214,7 +240,7 @@ class CtGeometrySolver(Node):
                               campaign_id=self.guard.campaign_id,
                               data_start_ns=min(p0.stamps_ns), data_end_ns=max(p0.stamps_ns),
                               extra={"frames": p0.n_frames, "srd_reported_m": p0.srd_reported_m})
-        self.history.store(rec, msg, MSG_TYPE)
+        self.last_rec = self.history.store(rec, msg, MSG_TYPE)
 
     def diagnose(self):
         held = self.acc.positions[0].n_frames if self.acc.positions else 0

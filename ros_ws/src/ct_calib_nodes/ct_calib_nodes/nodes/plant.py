@@ -68,9 +68,52 @@ class HistoryHook:
             for rec in self.history.list(cell=self.cell, kind=kind, status="success", newest_first=True, limit=50):
                 if mode is not None and rec.result.get("mode") != mode:
                     continue
+                if self.history.superseded(rec.uid):      # a later verdict withdrew it (e.g. POOR_FIT)
+                    continue
                 data = ros_msg_bytes(rec.result, type_name)
                 if data is not None:
                     return rec, deserialize_message(data, msg_type)
+        except Exception as exc:  # noqa: BLE001
+            self.node.get_logger().error(f"calibration history: could not read the latest {kind}: {exc}")
+        return None, None
+
+    def supersede(self, original, status, message: str, msg=None, type_name: str = "", extra=None):
+        """Append a record superseding ``original`` (History.supersede) with the re-published message.
+        Never raises (logged)."""
+        if self.history is None or original is None:
+            return None
+        from ct_calib_nodes.io.ct_history import ros_msg_blob  # noqa: PLC0415
+
+        try:
+            extra = dict(extra or {})
+            if msg is not None:
+                from rclpy.serialization import serialize_message  # noqa: PLC0415
+                extra["ros_msg"] = ros_msg_blob(type_name, serialize_message(msg))
+            return self.history.supersede(original, status, message, extra)
+        except Exception as exc:  # noqa: BLE001
+            self.node.get_logger().error(f"calibration history: could not store the {status} verdict "
+                                         f"on solve {getattr(original, 'id', '?')}: {exc}")
+            return None
+
+    def latest_published(self, kind: str, msg_type, type_name: str):
+        """(record, message) of what this cell published last for ``kind`` as stored: the newest SUCCESS
+        solve with its message, unless a later record supersedes it (then that record, e.g. POOR_FIT),
+        or (None, None). Failed solves that were never published do not count."""
+        if self.history is None:
+            return None, None
+        from rclpy.serialization import deserialize_message  # noqa: PLC0415
+
+        from ct_calib_nodes.io.ct_history import ros_msg_bytes  # noqa: PLC0415
+
+        try:
+            for rec in self.history.list(cell=self.cell, kind=kind, newest_first=True, limit=100):
+                if rec.status != "success" and "supersedes" not in rec.result:
+                    continue
+                if rec.status == "success" and self.history.superseded(rec.uid):
+                    continue
+                data = ros_msg_bytes(rec.result, type_name)
+                if data is not None:                     # with inputs and quantities (a later supersede copies them)
+                    return self.history.get(rec.id), deserialize_message(data, msg_type)
         except Exception as exc:  # noqa: BLE001
             self.node.get_logger().error(f"calibration history: could not read the latest {kind}: {exc}")
         return None, None
