@@ -17,7 +17,9 @@ so a detector that falls behind holds at most about twice ``pair_max_bytes`` of 
 200 frames (1.6 GiB at 2048^2); the stage readings keep the shared depth. Frames the full
 queue drops never reach the node: each image arriving after them makes the stage readings
 stamped before it unpairable, which are dropped and counted at once (``images_lost``; pairing
-reason ``overtaken``) instead of after ``pair_timeout_s``.
+reason ``overtaken``) instead of after ``pair_timeout_s``. This assumes one image publisher
+whose frames arrive in stamp order (a driver, a bag replay); frames published out of stamp
+order would lose their stage readings this way (counted, never silent).
 
 Keeping up: the node measures its processing time per frame and the interval
 between frame stamps (both smoothed); when it processes slower than frames come,
