@@ -129,7 +129,7 @@ def test_detector_flooded_with_big_frames_stays_bounded(tmp_path, start_node, ro
     ros_node.spin_until(lambda: False, timeout=3.0)
     send(n)
     assert pub_i.wait_for_all_acked(Duration(seconds=30))
-    ros_node.spin_until(lambda: False, timeout=3.0)
+    ros_node.spin_until(lambda: False, timeout=4.0)
     n += 1
     hwm = _status_mib(det.proc.pid, "VmHWM")
     assert det.proc.poll() is None
@@ -142,7 +142,9 @@ def test_detector_flooded_with_big_frames_stays_bounded(tmp_path, start_node, ro
           f"(sent {n * frame / 2**20:.0f} MiB); counts {counts}; dropped {dropped}; waiting {waiting}")
     assert counts["images_lost"] > 0, log[-2000:]         # the flood did overflow the queue
     assert counts["images_lost"] == dropped["stage"]["overtaken"]
-    assert waiting["stage"] == 0, waiting                # the last frame overtook them all
+    # the last frame overtook them all (on a loaded machine it may itself still sit in the queue
+    # at stop: its stage reading then waits, and the frame before it did the overtaking)
+    assert waiting["stage"] <= 1 and counts["images_lost"] >= n - 1 - counts["frames"] - 1, (waiting, counts)
     lost_any_way = sum(dropped["stage"].values()) + waiting["stage"]
     assert counts["frames"] + lost_any_way == n, log[-2000:]   # every frame accounted for
     # reader queue 4 frames + pairing bound 4 frames + a few in flight (decode, flat field)
