@@ -24,6 +24,7 @@ def test_picms_nodes_survive_malformed_messages(start_node, ros_node):
     from geometry_msgs.msg import PointStamped
     from metro_msgs.srv import RunPicmsCalibration
     from sensor_msgs.msg import CameraInfo, Image, JointState
+    from std_srvs.srv import Trigger
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
     from ct_calib_nodes.nodes.runner import QOS_LATCHED, QOS_RELIABLE_STREAM
@@ -34,6 +35,9 @@ def test_picms_nodes_survive_malformed_messages(start_node, ros_node):
                         "-p", "rate_hz:=0.5")
     calib = start_node("picms_nodes", "picms_calibration", "--ros-args", "-p", "cameras:=[camera_1]",
                        "-p", "settle_timeout_s:=1.0", "-p", "info_timeout_s:=20.0")
+    # the measurement node subscribes the same topics (RosCell); no part program: a run must answer why
+    meas = start_node("picms_nodes", "picms_measurement", "--ros-args", "-p", "cameras:=[camera_1]",
+                      "-p", "ready_timeout_s:=5.0", "-p", "history_db:=none")
     pub_cmd = ros_node.create_publisher(JointTrajectory, "/picms/stage/command", 10)
     pub_js = ros_node.create_publisher(JointState, "/picms/stage/joint_states", QOS_RELIABLE_STREAM)
     pub_smr = ros_node.create_publisher(PointStamped, "/picms/tracker/smr/smr_1", QOS_RELIABLE_STREAM)
@@ -43,9 +47,9 @@ def test_picms_nodes_survive_malformed_messages(start_node, ros_node):
     ros_node.create_subscription(JointState, "/picms/stage/joint_states", joints.append, QOS_RELIABLE_STREAM)
     ros_node.create_subscription(Image, "/picms/camera_1/image_raw", images.append, QOS_RELIABLE_STREAM)
     ros_node.create_subscription(PointStamped, "/picms/tracker/smr/smr_1", smr.append, QOS_RELIABLE_STREAM)
-    ready = (lambda: pub_cmd.get_subscription_count() >= 1 and pub_js.get_subscription_count() >= 4
-             and pub_smr.get_subscription_count() >= 2 and pub_info.get_subscription_count() >= 1
-             and pub_img.get_subscription_count() >= 2 and images)
+    ready = (lambda: pub_cmd.get_subscription_count() >= 1 and pub_js.get_subscription_count() >= 5
+             and pub_smr.get_subscription_count() >= 3 and pub_info.get_subscription_count() >= 2
+             and pub_img.get_subscription_count() >= 3 and images)
     assert ros_node.spin_until(ready, timeout=90), camera.log()[-2000:] + calib.log()[-2000:]
 
     def traj(names, *points):
@@ -105,11 +109,17 @@ def test_picms_nodes_survive_malformed_messages(start_node, ros_node):
     assert ros_node.spin_until(fut.done, timeout=60), calib.log()[-3000:]
     r = fut.result()
     assert not r.success and "never settled" in r.message, r.message
+    mcli = ros_node.create_client(Trigger, "/picms/run_measurement")
+    assert ros_node.spin_until(mcli.service_is_ready, timeout=30)
+    mfut = mcli.call_async(Trigger.Request())
+    assert ros_node.spin_until(mfut.done, timeout=60), meas.log()[-3000:]
+    assert not mfut.result().success and "part_program parameter" in mfut.result().message, mfut.result()
     alive = {n: p.proc.poll() is None for n, p in
-             (("stage", stage), ("tracker", tracker), ("camera", camera), ("calibration", calib))}
+             (("stage", stage), ("tracker", tracker), ("camera", camera), ("calibration", calib), ("measurement", meas))}
     assert all(alive.values()), alive
     logs = {}
-    for n, p in (("stage", stage), ("tracker", tracker), ("camera", camera), ("calibration", calib)):
+    for n, p in (("stage", stage), ("tracker", tracker), ("camera", camera), ("calibration", calib),
+                 ("measurement", meas)):
         assert p.stop() == 0, p.log()[-3000:]
         logs[n] = p.log()
         assert "Traceback" not in logs[n], (n, logs[n][-3000:])
@@ -119,8 +129,10 @@ def test_picms_nodes_survive_malformed_messages(start_node, ros_node):
         return (int(m[-1][0]), m[-1][1]) if m else (None, "")
     sent = {"stage": len(bad_cmd) * REPEAT, "tracker": len(bad_js) * REPEAT, "camera": len(bad_js) * REPEAT,
             "calibration": (len(bad_js) + len(bad_smr) + len(bad_img) + len(bad_info)) * REPEAT}
+    sent["measurement"] = sent["calibration"]
     kinds = {"stage": len(bad_cmd), "tracker": len(bad_js), "camera": len(bad_js),
              "calibration": len(bad_js) + len(bad_smr) + len(bad_img) + len(bad_info)}
+    kinds["measurement"] = kinds["calibration"]
     # exact counts where the subscription is reliable; joint states and tracker readings are subscribed
     # best-effort (sensor data, depth 5, shared with the stage's 50 Hz stream, and the camera simulator's
     # executor is busy rendering): the transport may drop some of the bad ones before the node sees them
@@ -142,5 +154,10 @@ def test_picms_nodes_survive_malformed_messages(start_node, ros_node):
         got = re.search(re.escape(topic) + r"': (\d+)", by_topic)
         assert got and n * REPEAT // 2 <= int(got.group(1)) <= n * REPEAT, (topic, by_topic)
     for topic in ("picms/stage/joint_states", "picms/tracker/smr/smr_1"):
+        assert f"{topic}': " in by_topic, (topic, by_topic)
+    # the measurement node (RosCell) counts what it takes in: joint states, tracker readings, CameraInfo
+    # (images are decoded, and counted, only during a measurement)
+    _t, by_topic = totals(logs["measurement"])
+    for topic in ("picms/stage/joint_states", "picms/tracker/smr/smr_1", "picms/camera_1/camera_info"):
         assert f"{topic}': " in by_topic, (topic, by_topic)
     assert logs["stage"].count("bad input on ") >= 3          # unknown joints, not finite, travel limit ...

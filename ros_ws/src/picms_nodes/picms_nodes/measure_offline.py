@@ -97,8 +97,12 @@ def main(argv=None) -> int:
     path = pathlib.Path(a.measurement)
     try:
         doc = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
+    except (OSError, ValueError, RecursionError) as e:      # RecursionError: nesting too deep to decode
         print(f"cannot read {path}: {e}", file=sys.stderr)
+        return 2
+    bad = _shape_problem(doc)
+    if bad:
+        print(f"{path}: not a usable measurement document: {bad}", file=sys.stderr)
         return 2
     try:
         prog_src = a.program or (doc.get("program_yaml") or doc.get("program"))
@@ -116,7 +120,7 @@ def main(argv=None) -> int:
             problems.append(f"point {k}: unreadable record ({e})")
     try:
         probe = probe_from_doc(doc) if (a.relocate or mode == "tracker") else None
-    except (ValueError, KeyError, targeting.TargetingError) as e:
+    except (ValueError, KeyError, TypeError, IndexError, targeting.TargetingError) as e:
         print(f"probe: {e}", file=sys.stderr)
         return 1
     if a.relocate:
@@ -154,6 +158,36 @@ def main(argv=None) -> int:
         out["history"] = hist
     print(json.dumps(out))
     return 0
+
+
+def _matrix3(value, what):
+    try:
+        m = np.asarray(value, float)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"{what} is not a 3 x 3 matrix ({e})") from None
+    if m.shape != (3, 3) or not np.all(np.isfinite(m)):
+        raise ValueError(f"{what} is not a finite 3 x 3 matrix (shape {m.shape})")
+    return m
+
+
+def _shape_problem(doc):
+    """What makes ``doc`` unusable as a measurement document (wrong JSON types), or None."""
+    if not isinstance(doc, dict):
+        return f"a JSON object expected, got {type(doc).__name__}"
+    for key, typ in (("points", list), ("probe", dict), ("part_finding", dict)):
+        if key in doc and not isinstance(doc[key], typ):
+            return f"{key!r} must be a JSON {'array' if typ is list else 'object'}, got {type(doc[key]).__name__}"
+    cal = doc.get("probe", {}).get("calibration", {})
+    if not isinstance(cal, dict) or not isinstance(cal.get("stage", {}), dict):
+        return "'probe.calibration.stage' must be a JSON object"
+    try:
+        if "R_tracker_stage" in cal.get("stage", {}):
+            _matrix3(cal["stage"]["R_tracker_stage"], "probe.calibration.stage.R_tracker_stage")
+        if "R_stage_part" in doc.get("part_finding", {}):
+            _matrix3(doc["part_finding"]["R_stage_part"], "part_finding.R_stage_part")
+    except ValueError as e:
+        return str(e)
+    return None
 
 
 def _store(a, doc, message, src, written):

@@ -10,7 +10,16 @@ initialised from the frames of each stage position themselves (the first
 unpaired messages are logged (rate-limited), counted and skipped; the node keeps running.
 The pairing buffers are bounded (``pair_max_pending`` messages and ``pair_max_bytes`` bytes
 per stream, oldest dropped first, besides ``pair_timeout_s``): frames whose stage readings
-never come cannot make the node grow.
+never come cannot make the node grow. The reader queue of the image subscription is bounded
+in bytes too: with reliable QoS its depth is ``pair_max_bytes`` / (rows x cols x 2 bytes of the
+instrument file's detector), at least 2 and at most the shared 200 (2048^2 frames: 32, so 256 MiB),
+so a detector that falls behind holds at most about twice ``pair_max_bytes`` of frames, not
+200 frames (1.6 GiB at 2048^2); the stage readings keep the shared depth. Frames the full
+queue drops never reach the node: each image arriving after them makes the stage readings
+stamped before it unpairable, which are dropped and counted at once (``images_lost``; pairing
+reason ``overtaken``) instead of after ``pair_timeout_s``. This assumes one image publisher
+whose frames arrive in stamp order (a driver, a bag replay); frames published out of stamp
+order would lose their stage readings this way (counted, never silent).
 
 Keeping up: the node measures its processing time per frame and the interval
 between frame stamps (both smoothed); when it processes slower than frames come,
@@ -27,7 +36,7 @@ import time
 
 from metro_msgs.msg import SphereObservationArray
 from rclpy.node import Node
-from rclpy.qos import qos_profile_sensor_data
+from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sensor_msgs.msg import Image, JointState
 
 from ct_calib_nodes.core.ct_pipeline import FrameProcessor, FrameRateMonitor
@@ -51,6 +60,11 @@ PARAMS = {
 }
 
 
+def image_queue_depth(max_bytes: int, rows: int, cols: int, most: int = 200) -> int:
+    """Reader queue depth holding about ``max_bytes`` of rows x cols 16-bit frames (2 to ``most``)."""
+    return max(2, min(int(most), int(max_bytes) // max(1, 2 * int(rows) * int(cols))))
+
+
 class CtSphereDetector(Node):
     def __init__(self):
         super().__init__("ct_sphere_detector")
@@ -62,13 +76,22 @@ class CtSphereDetector(Node):
         self.pairer = StampPairer(int(p["pair_max_pending"]), int(p["pair_max_bytes"]), float(p["pair_timeout_s"]))
         self.bad_input = BadInputCounter(self.get_logger())
         self.counts = {"frames": 0, "bad_frames": 0, "bad_stage": 0, "unpaired": 0, "published": 0,
-                       "falling_behind": 0}
+                       "falling_behind": 0, "images_lost": 0}
         self.rate = FrameRateMonitor()
         self._last_lag_warning = -1e9
         self._dropped_logged = 0
         qos = QOS_RELIABLE_STREAM if p["reliable"] else qos_profile_sensor_data
         self.pub = self.create_publisher(SphereObservationArray, "ct/observations", QOS_RELIABLE_STREAM)
-        self.create_subscription(Image, IMAGE, self.bad_input.guard(IMAGE, self._on_image), qos)
+        qos_image = qos
+        if p["reliable"]:
+            det = self.instrument.detector
+            self.image_queue_depth = image_queue_depth(int(p["pair_max_bytes"]), det.rows, det.cols,
+                                                       QOS_RELIABLE_STREAM.depth)
+            qos_image = QoSProfile(history=qos.history, depth=self.image_queue_depth, reliability=qos.reliability,
+                                   durability=qos.durability)
+            self.get_logger().info(f"image reader queue depth {self.image_queue_depth} "
+                                   f"({det.rows}x{det.cols} frames, pair_max_bytes {int(p['pair_max_bytes'])})")
+        self.create_subscription(Image, IMAGE, self.bad_input.guard(IMAGE, self._on_image), qos_image)
         self.create_subscription(JointState, STAGE, self.bad_input.guard(STAGE, self._on_stage), qos)
         self.create_timer(1.0, self._expire)
         from ct_calib_nodes.nodes import plant  # noqa: PLC0415
@@ -80,6 +103,10 @@ class CtSphereDetector(Node):
         self.rates["image"].tick()
         t = stamp_ns(msg.header.stamp)
         pair = self.pairer.add("image", t, msg, len(msg.data))
+        lost = self.pairer.drop_older("stage", t)    # their images were lost (dropped by a full queue)
+        if lost:
+            self.counts["images_lost"] += lost
+            self.counts["unpaired"] = self.pairer.total_dropped()
         if pair:
             self._pair(t, *pair)
 
@@ -120,7 +147,8 @@ class CtSphereDetector(Node):
             self.get_logger().warning(
                 f"falling behind: processing {self.rate.processing_hz:.1f} frames/s but frames come at "
                 f"{self.rate.arrival_hz:.1f} frames/s (stamps); {self.counts['falling_behind']} frame(s) so far "
-                f"processed slower than they came (queued, or dropped by best-effort QoS)")
+                f"processed slower than they came (queued, or dropped by the reader queue: "
+                f"{self.counts['images_lost']} image(s) lost so far)")
 
     def _publish(self, fr):
         from builtin_interfaces.msg import Time  # noqa: PLC0415

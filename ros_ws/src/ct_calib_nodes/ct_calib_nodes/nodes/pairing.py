@@ -27,7 +27,7 @@ class StampPairer:
         self.clock = clock
         self.buf = {s: OrderedDict() for s in self.sides}     # stamp -> (msg, nbytes, arrival)
         self.nbytes = {s: 0 for s in self.sides}
-        self.dropped = {s: {"count_bound": 0, "byte_bound": 0, "timeout": 0, "replaced": 0} for s in self.sides}
+        self.dropped = {s: {"count_bound": 0, "byte_bound": 0, "timeout": 0, "replaced": 0, "overtaken": 0} for s in self.sides}
         self.peak = {s: {"count": 0, "bytes": 0} for s in self.sides}
 
     def pending(self, side: str) -> int:
@@ -58,6 +58,18 @@ class StampPairer:
         _stamp, (_m, n, _t) = self.buf[side].popitem(last=False)
         self.nbytes[side] -= n
         self.dropped[side][reason] += 1
+
+    def drop_older(self, side: str, stamp: int, reason: str = "overtaken") -> int:
+        """Drop ``side``'s messages stamped before ``stamp``; returns how many. For a partner stream
+        that arrives in stamp order (one publisher), a message of ``side`` older than the partner's
+        newest stamp will never be paired: its partner was lost on the way."""
+        b, k = self.buf[side], 0
+        for old in [s for s in b if s < stamp]:
+            _m, n, _t = b.pop(old)
+            self.nbytes[side] -= n
+            self.dropped[side][reason] += 1
+            k += 1
+        return k
 
     def expire(self) -> int:
         """Drop what waited longer than ``timeout_s``; returns how many were dropped."""

@@ -85,6 +85,8 @@ class PicmsMeasurementNode(Node):
         if not self.busy.acquire(blocking=False):
             return False, "a measurement is running"
         try:
+            if not str(self.p["part_program"]).strip():
+                raise ValueError("no part program: set the part_program parameter (a part_program.yaml)")
             prog = part_program.load(self.p["part_program"])
             self.cell.wait_ready(float(self.p["ready_timeout_s"]))
             cal_path = pathlib.Path(self.p["calibration_file"])

@@ -24,6 +24,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from ct_calib_nodes.nodes.bad_input import BadInputCounter
 from ct_calib_nodes.nodes.runner import QOS_LATCHED
 
 from ..core.cellio import Settled, SettleTimeout
@@ -52,32 +53,45 @@ class RosCell:
         self.frames: dict = {}            # camera -> (stamp_ns, Image msg), the latest
         self.tracker: list = []           # (stamp_ns, name, (3,))
         self.skipped = 0
+        # bad messages counted by topic and kind (the node's counter if it has one, else one given to
+        # it, so nodes/runner logs the totals on the way out); callbacks guarded: no message ends the node
+        self.bad_input = getattr(node, "bad_input", None)
+        if self.bad_input is None:
+            self.bad_input = node.bad_input = BadInputCounter(node.get_logger())
+            node.create_timer(5.0, self.bad_input.maybe_summarise)
+        guard = self.bad_input.guard
         sensors = MutuallyExclusiveCallbackGroup()
         images = MutuallyExclusiveCallbackGroup()
-        node.create_subscription(JointState, JOINTS_TOPIC, self._on_joints, qos_profile_sensor_data,
+        node.create_subscription(JointState, JOINTS_TOPIC, guard(JOINTS_TOPIC, self._on_joints), qos_profile_sensor_data,
                                  callback_group=sensors)
         for n in self.smr_names:
-            node.create_subscription(PointStamped, SMR_TOPIC.format(n), lambda m, n=n: self._on_smr(n, m),
+            node.create_subscription(PointStamped, SMR_TOPIC.format(n),
+                                     guard(SMR_TOPIC.format(n), lambda m, n=n: self._on_smr(n, m)),
                                      qos_profile_sensor_data, callback_group=sensors)
         img_qos = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE) if image_reliable \
             else qos_profile_sensor_data
         for c in self.camera_names:
-            node.create_subscription(CameraInfo, INFO_TOPIC.format(c), lambda m, c=c: self._on_info(c, m),
+            node.create_subscription(CameraInfo, INFO_TOPIC.format(c),
+                                     guard(INFO_TOPIC.format(c), lambda m, c=c: self._on_info(c, m)),
                                      QOS_LATCHED, callback_group=sensors)
-            node.create_subscription(Image, IMAGE_TOPIC.format(c), lambda m, c=c: self._on_image(c, m),
+            node.create_subscription(Image, IMAGE_TOPIC.format(c),
+                                     guard(IMAGE_TOPIC.format(c), lambda m, c=c: self._on_image(c, m)),
                                      img_qos, callback_group=images)
         self.cmd = node.create_publisher(JointTrajectory, COMMAND_TOPIC, 10)
 
     # ---------------------------------------------------------------- intake
-    def _warn(self, text):
+    def _warn(self, text, topic=None):
         self.skipped += 1
-        self.node.get_logger().warning(text, throttle_duration_sec=2.0)
+        if topic is None:
+            self.node.get_logger().warning(text, throttle_duration_sec=2.0)
+        else:                               # counted by kind, logged once per kind plus summaries
+            self.bad_input.report(topic, text)
 
     def _on_joints(self, m):
         try:
             q = joint_positions(m)
         except MessageError as exc:
-            self._warn(f"skipped joint_states: {exc}")
+            self._warn(f"skipped joint_states: {exc}", JOINTS_TOPIC)
             return
         with self.lock:
             self.js_t.append(stamp_ns(m.header.stamp))
@@ -89,7 +103,7 @@ class RosCell:
         try:
             p = point(m)
         except MessageError as exc:
-            self._warn(f"skipped tracker reading of {name}: {exc}")
+            self._warn(f"skipped tracker reading: {exc}", SMR_TOPIC.format(name))
             return
         with self.lock:
             self.tracker.append((stamp_ns(m.header.stamp), name, p))
@@ -100,7 +114,7 @@ class RosCell:
         try:
             intr = intrinsics_from_camera_info(m)
         except MessageError as exc:
-            self._warn(f"skipped CameraInfo of {cam}: {exc}")
+            self._warn(f"skipped CameraInfo: {exc}", INFO_TOPIC.format(cam))
             return
         with self.lock:
             self.camera_info[cam] = intr
@@ -199,7 +213,7 @@ class RosCell:
                     images[c] = image_array(msg)
                     stamps[c] = st
                 except MessageError as exc:
-                    self._warn(f"frame from {c} skipped: {exc}")
+                    self._warn(f"frame skipped: {exc}", IMAGE_TOPIC.format(c))
                     with self.lock:
                         if self.frames.get(c, (0,))[0] == st:
                             del self.frames[c]
