@@ -22,12 +22,12 @@ from geometry_msgs.msg import PointStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image, JointState
-from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+from trajectory_msgs.msg import JointTrajectory
 
 from ct_calib_nodes.nodes.runner import QOS_LATCHED
 
 from ..core.cellio import Settled, SettleTimeout
-from ..io.convert import MessageError, image_array, intrinsics_from_camera_info, joint_positions, point, stamp_ns
+from ..io.convert import MessageError, image_array, intrinsics_from_camera_info, joint_positions, point, stage_command, stamp_ns
 from .common import COMMAND_TOPIC, IMAGE_TOPIC, INFO_TOPIC, JOINTS_TOPIC, SMR_TOPIC
 
 
@@ -133,12 +133,7 @@ class RosCell:
         if not np.all(np.isfinite(q)):
             raise ValueError(f"move_and_settle: target is not finite: {q}")
         t_cmd = self.node.get_clock().now().nanoseconds
-        m = JointTrajectory()
-        m.joint_names = ["x", "y", "z"]
-        pt = JointTrajectoryPoint()
-        pt.positions = [float(v) for v in q]
-        m.points = [pt]
-        self.cmd.publish(m)
+        self.cmd.publish(stage_command(q))
         return self._settle(t_cmd, timeout_s, target=q)
 
     def current(self) -> Settled:
