@@ -27,26 +27,16 @@ from metro_msgs.action import DriveProbe
 from ct_calib_nodes.nodes.runner import QOS_LATCHED, declare_parameters
 
 from ..core.targeting import (Probe, TargetingError, circle_feature_locator, direct_locator, drive_to)
-from ..io.files import read_cell
-from .picms_calibration import _default_cell
-from .ros_cell import RosCell
+from .ros_cell import CELL_PARAMS, open_cell
 
 ACTION = "picms/drive_probe"
 POINT_STAGE_TOPIC = "picms/targeting/point_stage"
 POINT_TRACKER_TOPIC = "picms/targeting/point_tracker"
 
 PARAMS = {
-    "cell_file": ("", "picms_cell.yaml; empty = the package's config/picms_cell.yaml [path]"),
-    "calibration_file": ("picms_calibration.yaml", "the Pixel Probe calibration (picms_calibration.yaml) [path]"),
-    "cameras": (["camera_1", "camera_2", "camera_3"], "cameras of the Pixel Probe [-]"),
+    **CELL_PARAMS,
     "max_moves": (6, "default bound on the moves per target [count]"),
     "settle_timeout_s": (30.0, "give up when the stage has not settled this long after a command [s]"),
-    "settle_tol_m": (2.5e-7, "encoder readings within this span count as still [m]"),
-    "settle_hold_s": (0.3, "still for this long counts as settled [s]"),
-    "tracker_window_s": (0.5, "average tracker readings over this long once settled [s]"),
-    "frame_timeout_s": (20.0, "wait this long for a settled frame from every camera [s]"),
-    "image_reliable": (True, "subscribe images reliably (false to match a best-effort camera driver) [-]"),
-    "ready_timeout_s": (20.0, "wait this long for joint_states, CameraInfo and the stage at the first goal [s]"),
 }
 
 
@@ -81,12 +71,7 @@ class PicmsTargetingNode(Node):
     def __init__(self):
         super().__init__("picms_targeting")
         self.p = p = declare_parameters(self, PARAMS)
-        self.cell_yaml = read_cell(p["cell_file"] or _default_cell())
-        self.cell = RosCell(self, p["cameras"], float(self.cell_yaml["stage"]["resolution"]),
-                            list(self.cell_yaml["tracker"]["constellation"]),
-                            settle_tol_m=float(p["settle_tol_m"]), settle_hold_s=float(p["settle_hold_s"]),
-                            tracker_window_s=float(p["tracker_window_s"]), image_reliable=bool(p["image_reliable"]),
-                            frame_timeout_s=float(p["frame_timeout_s"]))
+        self.cell_yaml, self.cell = open_cell(self, p)
         self.busy = threading.Lock()
         self._probe = None
         self._probe_key = None
