@@ -23,19 +23,10 @@ import time
 
 import numpy as np
 
+from _memory import rss_mib, rss_summary  # sibling module (this folder is on sys.path)
+
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 EXE = ROOT / "ros_ws" / "install" / "ct_calib_nodes" / "lib" / "ct_calib_nodes" / "ct_sphere_detector"
-
-
-def rss_mib(pid):
-    try:
-        with open(f"/proc/{pid}/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024
-    except FileNotFoundError:
-        return float("nan")
-    return float("nan")
 
 
 def main():
@@ -107,12 +98,9 @@ def main():
            "rate_hz_asked": args.rate, "rate_hz_achieved": round(sent / elapsed, 2), "seconds": round(elapsed, 1),
            "frames_published": sent, "note": "2-core machine shared with other jobs; RSS of the node processes"}
     for n, s in samples.items():
-        arr = np.array(s)
-        half = arr[arr[:, 0] >= arr[-1, 0] / 2]
-        slope = float(np.polyfit(half[:, 0] / 60.0, half[:, 1], 1)[0]) if len(half) >= 3 else float("nan")
-        out[n] = {"rss_start_mib": round(start[n], 1), "rss_end_mib": round(float(arr[-1, 1]), 1),
-                  "rss_peak_mib": round(float(np.nanmax(arr[:, 1])), 1),
-                  "growth_second_half_mib_per_min": round(slope, 2) if np.isfinite(slope) else None}
+        r = rss_summary(s)
+        out[n] = {"rss_start_mib": round(start[n], 1), "rss_end_mib": r["end_mib"], "rss_peak_mib": r["peak_mib"],
+                  "growth_second_half_mib_per_min": r["growth_second_half_mib_per_min"]}
         log = (tmp / f"{n}.log").read_text(errors="replace")
         tail = [ln for ln in log.splitlines() if "detector counts" in ln]
         out[n]["final_counts"] = tail[-1].split("detector counts: ", 1)[1][:400] if tail else None

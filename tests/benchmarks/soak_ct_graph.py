@@ -39,23 +39,14 @@ import time
 
 import numpy as np
 
+from _memory import rss_mib, rss_summary  # sibling module (this folder is on sys.path)
+
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 INSTALL = ROOT / "ros_ws" / "install"
 
 
 def exe(pkg, name):
     return str(INSTALL / pkg / "lib" / pkg / name)
-
-
-def rss_mib(pid):
-    try:
-        with open(f"/proc/{pid}/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024
-    except (FileNotFoundError, ProcessLookupError):
-        pass
-    return float("nan")
 
 
 def pct(values):
@@ -65,17 +56,6 @@ def pct(values):
     return {"n": int(a.size), "p50_ms": round(float(np.percentile(a, 50)) * 1e3, 1),
             "p95_ms": round(float(np.percentile(a, 95)) * 1e3, 1), "p99_ms": round(float(np.percentile(a, 99)) * 1e3, 1),
             "max_ms": round(float(a.max()) * 1e3, 1)}
-
-
-def rss_summary(samples):
-    arr = np.array(samples, float)
-    if arr.size == 0:
-        return None
-    half = arr[arr[:, 0] >= arr[-1, 0] / 2]
-    slope = float(np.polyfit(half[:, 0] / 60.0, half[:, 1], 1)[0]) if len(half) >= 3 else float("nan")
-    return {"start_mib": round(float(arr[0, 1]), 1), "end_mib": round(float(arr[-1, 1]), 1),
-            "peak_mib": round(float(np.nanmax(arr[:, 1])), 1),
-            "growth_second_half_mib_per_min": round(slope, 2) if np.isfinite(slope) else None}
 
 
 class Procs:

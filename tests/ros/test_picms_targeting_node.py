@@ -100,3 +100,23 @@ def test_drive_probe_action_feature_and_direct_modes(start_node, ros_node, tmp_p
     assert ros_node.spin_until(fut.done, timeout=20)
     assert not fut.result().accepted
     assert "goal rejected" in tgt.log()
+    # cancel: accepted, honoured at the first iteration (the stage settled, before any move)
+    from action_msgs.msg import GoalStatus
+    fb = []
+    fut = client.send_goal_async(DriveProbe.Goal(mode="circle", cameras=names, rois=rois, diameter=250e-6),
+                                 feedback_callback=lambda m: fb.append(m.feedback))
+    assert ros_node.spin_until(fut.done, timeout=30), tgt.log()
+    gh = fut.result()
+    assert gh.accepted
+    cf = gh.cancel_goal_async()
+    assert ros_node.spin_until(cf.done, timeout=20)
+    assert len(cf.result().goals_canceling) == 1, "cancel refused"
+    rf = gh.get_result_async()
+    assert ros_node.spin_until(rf.done, timeout=90), tgt.log()
+    res3 = rf.result().result
+    assert rf.result().status == GoalStatus.STATUS_CANCELED, (rf.result().status, res3.message)
+    assert "canceled after 1 iterations" in res3.message and res3.iterations == 1, res3.message
+    assert len(res3.q) == 3                 # the settled position it stopped at
+    if fb:
+        assert np.allclose(res3.q, fb[-1].q)
+

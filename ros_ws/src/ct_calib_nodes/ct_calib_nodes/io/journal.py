@@ -33,6 +33,8 @@ import re
 import struct
 import zlib
 
+from ct_calib_nodes.io.atomic import write_bytes_atomic
+
 MAGIC = b"MJ1"
 _HEAD = struct.Struct("<3scII")
 VERSION = 1
@@ -153,14 +155,8 @@ class Journal:
     def start_new(self):
         """Begin a new campaign: the old file is replaced (atomically: a new file renamed over it)."""
         self.close()
-        tmp = self.path.with_suffix(".journal.new")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
         payload = json.dumps({"node": self.node, "cell": self.cell, "version": VERSION}).encode()
-        with open(tmp, "wb") as fh:
-            fh.write(_HEAD.pack(MAGIC, b"H", len(payload), zlib.crc32(payload)) + payload)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, self.path)
+        write_bytes_atomic(self.path, _HEAD.pack(MAGIC, b"H", len(payload), zlib.crc32(payload)) + payload)
         self.messages, self.events, self.damaged = [], [], None
         self.valid_bytes = self.path.stat().st_size
         self._fh = open(self.path, "ab")      # noqa: SIM115

@@ -9,6 +9,7 @@ import numpy as np
 
 from ct_calib_nodes.core.error_map import COMPONENT_FIELDS as ERROR_MAP_FIELDS
 from ct_calib_nodes.core.geometry import STATIC_PARAM_NAMES, STATIC_PARAM_UNITS, static_to_detector_frame
+from ct_calib_nodes.io.atomic import write_text_atomic
 from ct_calib_nodes.io.convert import stamp_ns
 
 STATUS_SUCCESS, STATUS_NOT_CONVERGED, STATUS_DEGENERATE, STATUS_INSUFFICIENT, STATUS_FAILED, STATUS_POOR_FIT = range(6)
@@ -160,12 +161,7 @@ def _plain(v):
 
 def write_json_atomic(path, data: dict) -> pathlib.Path:
     """Write JSON via a temp file and rename: good results are never replaced by a partial file."""
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(_plain(data), indent=1))
-    tmp.replace(path)
-    return path
+    return write_text_atomic(path, json.dumps(_plain(data), indent=1))
 
 
 def static_param_table_rows(res):

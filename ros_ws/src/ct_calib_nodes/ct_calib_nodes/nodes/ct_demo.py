@@ -49,6 +49,20 @@ def _stop(proc, timeout=20.0):
     return proc.returncode
 
 
+
+def campaign_over(latest: dict, seen: dict, n_positions: int, now: float, quiet_s: float = 6.0) -> bool:
+    """Both error maps (multi and single) cover n_positions and are complete. A map carrying the
+    ErrorMap ``final`` flag is complete only when the flag is set (the error-motion node's own word);
+    a map without the field (an older recording or message set) falls back to: updated after the last
+    observation and no observation for quiet_s seconds."""
+    maps = [latest.get("multi"), latest.get("single")]
+    if any(m is None or len(m.srd_reported_m) < n_positions for m in maps):
+        return False
+    if all(hasattr(m, "final") for m in maps):
+        return all(bool(m.final) for m in maps)
+    quiet = seen["all_obs_at"] is not None and now - seen["all_obs_at"] > quiet_s
+    return quiet and seen["multi_after"] and seen["single_after"]
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--positions", type=int, default=6, help="stage positions (default 6)")
@@ -130,11 +144,7 @@ def main(argv=None):
             executor.spin_once(timeout_sec=0.2)
             # done: every frame detected, and both error maps updated after the last observation
             sim_done = procs["sim"][0].poll() == 0
-            quiet = seen["all_obs_at"] is not None and time.monotonic() - seen["all_obs_at"] > 6.0
-            done = sim_done and quiet and seen["multi_after"] and seen["single_after"] and \
-                len(latest["multi"].srd_reported_m) >= args.positions and \
-                len(latest["single"].srd_reported_m) >= args.positions
-            if done:
+            if sim_done and campaign_over(latest, seen, args.positions, time.monotonic()):
                 ok = True
                 break
             dead = [k for k, (p, _l) in procs.items() if p.poll() not in (None, 0)]

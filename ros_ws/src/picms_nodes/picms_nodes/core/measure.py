@@ -24,13 +24,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import pathlib
-import tempfile
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from ct_calib_nodes.io.atomic import replace_atomically  # standard library only (no ROS)
 
 from . import features, fitting, part_program
 from .part_program import PartProgram, PlannedPoint
@@ -365,22 +365,7 @@ def write_json_atomic(doc: dict, path) -> pathlib.Path:
     def write(tmp):
         with open(tmp, "w") as fh:
             json.dump(doc, fh, indent=1, default=_json_default)
-    return _replace_atomically(path, ".tmp", write)
-
-
-def _replace_atomically(path: pathlib.Path, suffix: str, write) -> pathlib.Path:
-    """write(tmp) into a temporary file beside path, then rename it over path; on any failure
-    the temporary file is removed and path is left as it was."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=suffix)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    return replace_atomically(path, write)
 
 
 def _json_default(o):
@@ -400,4 +385,4 @@ def write_crops(run: MeasurementRun, path) -> pathlib.Path:
         for c, (x0, y0, a) in mp.crops.items():
             arrays[f"p{k}_{c}"] = a
             arrays[f"p{k}_{c}_xy"] = np.array([x0, y0])
-    return _replace_atomically(path, ".tmp.npz", lambda tmp: np.savez_compressed(tmp, **arrays))
+    return replace_atomically(path, lambda tmp: np.savez_compressed(tmp, **arrays), suffix=".tmp.npz")

@@ -69,6 +69,22 @@ def joint_positions(msg) -> np.ndarray:
     return q
 
 
+def stage_command(q):
+    """trajectory_msgs/JointTrajectory commanding the stage to q = [x, y, z] in m (one point, joints
+    x, y, z as INTERFACES.md names them). The message package is imported here only, when a node
+    builds a command, so offline tools keep working without it."""
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint  # noqa: PLC0415
+    q = np.asarray(q, float).reshape(-1)
+    if q.shape != (3,) or not np.all(np.isfinite(q)):
+        raise ValueError(f"stage command needs three finite positions [x, y, z] in m, got {q.tolist()}")
+    m = JointTrajectory()
+    m.joint_names = list(JOINT_NAMES)
+    pt = JointTrajectoryPoint()
+    pt.positions = [float(v) for v in q]
+    m.points = [pt]
+    return m
+
+
 def point(msg) -> np.ndarray:
     p = np.array([msg.point.x, msg.point.y, msg.point.z], float)
     if not np.all(np.isfinite(p)):

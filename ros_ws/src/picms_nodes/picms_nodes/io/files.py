@@ -5,12 +5,12 @@ written: a failed run never touches a good file.
 """
 from __future__ import annotations
 
-import os
 import pathlib
-import tempfile
 
 import numpy as np
 import yaml
+
+from ct_calib_nodes.io.atomic import replace_atomically
 
 from ..core.calibrate import CalibrationResult
 
@@ -71,14 +71,7 @@ def write_calibration(res: CalibrationResult, path) -> pathlib.Path:
     """Write picms_calibration.yaml atomically; refuse a failed result (nothing is written)."""
     if not res.success:
         raise ValueError(f"calibration failed ({res.message}): {path} left untouched")
-    p = pathlib.Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".picms_calibration.", dir=p.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
+    def write(tmp):
+        with open(tmp, "w") as fh:
             yaml.safe_dump(calibration_dict(res), fh, sort_keys=False, width=120)
-        os.replace(tmp, p)
-    except BaseException:
-        pathlib.Path(tmp).unlink(missing_ok=True)
-        raise
-    return p
+    return replace_atomically(path, write)

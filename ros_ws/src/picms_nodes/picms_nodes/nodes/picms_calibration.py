@@ -21,7 +21,7 @@ from geometry_msgs.msg import PointStamped
 from metro_msgs.msg import PicmsCalibration
 from metro_msgs.srv import RunPicmsCalibration
 from sensor_msgs.msg import CameraInfo, Image, JointState
-from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+from trajectory_msgs.msg import JointTrajectory
 
 from ct_calib_nodes.nodes import plant
 from ct_calib_nodes.nodes.bad_input import BadInputCounter
@@ -32,7 +32,7 @@ from ..core.campaign import Recording, appendix_a_pattern
 from ..core.detect import DetectionError, detect_disc
 from ..core.pipeline import calibrate_detections
 from ..io.calibration_msg import calibration_msg, failure_msg
-from ..io.convert import MessageError, image_array, intrinsics_from_camera_info, joint_positions, point, stamp_ns
+from ..io.convert import MessageError, image_array, intrinsics_from_camera_info, joint_positions, point, stage_command, stamp_ns
 from ..io.files import read_cell, write_calibration
 from .common import CALIBRATION_TOPIC, COMMAND_TOPIC, IMAGE_TOPIC, INFO_TOPIC, JOINTS_TOPIC, SERVICE, SMR_TOPIC
 
@@ -169,12 +169,7 @@ class PicmsCalibrationNode(Node):
 
     # ---------------------------------------------------------------- sequence
     def _command(self, q):
-        m = JointTrajectory()
-        m.joint_names = ["x", "y", "z"]
-        pt = JointTrajectoryPoint()
-        pt.positions = [float(v) for v in q]
-        m.points = [pt]
-        self.cmd.publish(m)
+        self.cmd.publish(stage_command(q))
 
     def _wait_settled(self, target, t_cmd_ns):
         res = float(self.cell["stage"]["resolution"])

@@ -26,28 +26,18 @@ from ct_calib_nodes.nodes.runner import QOS_LATCHED, declare_parameters
 
 from ..core import fitting, measure, part_program
 from ..core.targeting import Probe, TargetingError
-from ..io.files import read_cell
-from .picms_calibration import _default_cell
-from .ros_cell import RosCell
+from .ros_cell import CELL_PARAMS, open_cell
 
 SERVICE = "picms/run_measurement"
 POINT_TOPIC = "picms/measurement/point"
 RESULT_TOPIC = "picms/measurement/result"
 
 PARAMS = {
+    **CELL_PARAMS,
     "part_program": ("", "part_program.yaml to run [path]"),
     "output_file": ("measurement.json", "where measurement.json is written (atomically, on success) [path]"),
     "mode": ("stage", "stage (tracker-free, encoders) or tracker (constellation) [-]"),
-    "cell_file": ("", "picms_cell.yaml; empty = the package's config/picms_cell.yaml [path]"),
-    "calibration_file": ("picms_calibration.yaml", "the Pixel Probe calibration [path]"),
-    "cameras": (["camera_1", "camera_2", "camera_3"], "cameras of the Pixel Probe [-]"),
     "max_moves": (4, "bound on the targeting moves per point [count]"),
-    "settle_tol_m": (2.5e-7, "encoder readings within this span count as still [m]"),
-    "settle_hold_s": (0.3, "still for this long counts as settled [s]"),
-    "tracker_window_s": (0.5, "average tracker readings over this long once settled [s]"),
-    "frame_timeout_s": (20.0, "wait this long for a settled frame from every camera [s]"),
-    "image_reliable": (True, "subscribe images reliably [-]"),
-    "ready_timeout_s": (20.0, "wait this long for joint_states, CameraInfo and the stage [s]"),
     "auto_start": (False, "run the part program once at start-up [-]"),
     "history_db": ("", "calibration history (kind picms_measurement); empty = METRO_HISTORY_DB or the default, "
                        "none = off [path]"),
@@ -60,12 +50,7 @@ class PicmsMeasurementNode(Node):
         self.p = p = declare_parameters(self, PARAMS)
         if p["mode"] not in ("stage", "tracker"):
             raise ValueError(f"mode must be stage or tracker, got {p['mode']!r}")
-        self.cell_yaml = read_cell(p["cell_file"] or _default_cell())
-        self.cell = RosCell(self, p["cameras"], float(self.cell_yaml["stage"]["resolution"]),
-                            list(self.cell_yaml["tracker"]["constellation"]),
-                            settle_tol_m=float(p["settle_tol_m"]), settle_hold_s=float(p["settle_hold_s"]),
-                            tracker_window_s=float(p["tracker_window_s"]), image_reliable=bool(p["image_reliable"]),
-                            frame_timeout_s=float(p["frame_timeout_s"]))
+        self.cell_yaml, self.cell = open_cell(self, p)
         self.busy = threading.Lock()
         from ct_calib_nodes.nodes.plant import HistoryHook
         self.history = HistoryHook(self, str(p["history_db"]))

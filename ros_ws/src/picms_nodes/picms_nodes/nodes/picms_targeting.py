@@ -10,6 +10,8 @@ picms/targeting/point_stage and picms/targeting/point_tracker (geometry_msgs/Poi
 The probe comes from picms_calibration.yaml (`calibration_file`, re-read when it changes) and
 the CameraInfo intrinsics; the cell is a RosCell (nodes/ros_cell.py) over the INTERFACES.md
 topics. One goal at a time; a bad goal is rejected with the reason, a failed one aborts with it.
+A cancel request is accepted and honoured between iterations (the stage settled, no move
+pending): the goal ends canceled with the iterations done so far.
 """
 from __future__ import annotations
 
@@ -27,27 +29,21 @@ from metro_msgs.action import DriveProbe
 from ct_calib_nodes.nodes.runner import QOS_LATCHED, declare_parameters
 
 from ..core.targeting import (Probe, TargetingError, circle_feature_locator, direct_locator, drive_to)
-from ..io.files import read_cell
-from .picms_calibration import _default_cell
-from .ros_cell import RosCell
+from .ros_cell import CELL_PARAMS, open_cell
 
 ACTION = "picms/drive_probe"
 POINT_STAGE_TOPIC = "picms/targeting/point_stage"
 POINT_TRACKER_TOPIC = "picms/targeting/point_tracker"
 
 PARAMS = {
-    "cell_file": ("", "picms_cell.yaml; empty = the package's config/picms_cell.yaml [path]"),
-    "calibration_file": ("picms_calibration.yaml", "the Pixel Probe calibration (picms_calibration.yaml) [path]"),
-    "cameras": (["camera_1", "camera_2", "camera_3"], "cameras of the Pixel Probe [-]"),
+    **CELL_PARAMS,
     "max_moves": (6, "default bound on the moves per target [count]"),
     "settle_timeout_s": (30.0, "give up when the stage has not settled this long after a command [s]"),
-    "settle_tol_m": (2.5e-7, "encoder readings within this span count as still [m]"),
-    "settle_hold_s": (0.3, "still for this long counts as settled [s]"),
-    "tracker_window_s": (0.5, "average tracker readings over this long once settled [s]"),
-    "frame_timeout_s": (20.0, "wait this long for a settled frame from every camera [s]"),
-    "image_reliable": (True, "subscribe images reliably (false to match a best-effort camera driver) [-]"),
-    "ready_timeout_s": (20.0, "wait this long for joint_states, CameraInfo and the stage at the first goal [s]"),
 }
+
+
+class _Canceled(Exception):
+    """The goal was canceled; raised from drive_to's progress callback (between iterations, stage settled)."""
 
 
 def goal_locator(goal, names):
@@ -81,19 +77,14 @@ class PicmsTargetingNode(Node):
     def __init__(self):
         super().__init__("picms_targeting")
         self.p = p = declare_parameters(self, PARAMS)
-        self.cell_yaml = read_cell(p["cell_file"] or _default_cell())
-        self.cell = RosCell(self, p["cameras"], float(self.cell_yaml["stage"]["resolution"]),
-                            list(self.cell_yaml["tracker"]["constellation"]),
-                            settle_tol_m=float(p["settle_tol_m"]), settle_hold_s=float(p["settle_hold_s"]),
-                            tracker_window_s=float(p["tracker_window_s"]), image_reliable=bool(p["image_reliable"]),
-                            frame_timeout_s=float(p["frame_timeout_s"]))
+        self.cell_yaml, self.cell = open_cell(self, p)
         self.busy = threading.Lock()
         self._probe = None
         self._probe_key = None
         self.pub_stage = self.create_publisher(PointStamped, POINT_STAGE_TOPIC, QOS_LATCHED)
         self.pub_tracker = self.create_publisher(PointStamped, POINT_TRACKER_TOPIC, QOS_LATCHED)
         self.server = ActionServer(self, DriveProbe, ACTION, execute_callback=self.execute,
-                                   goal_callback=self.on_goal, cancel_callback=lambda _: CancelResponse.REJECT,
+                                   goal_callback=self.on_goal, cancel_callback=lambda _: CancelResponse.ACCEPT,
                                    callback_group=ReentrantCallbackGroup())
         self.get_logger().info(f"targeting ready: action {self.resolve_topic_name(ACTION)}, "
                                f"calibration {p['calibration_file']}")
@@ -144,7 +135,11 @@ class PicmsTargetingNode(Node):
                 gh.publish_feedback(fb)
                 self.get_logger().info(f"iteration {fb.iteration}: offset {np.round(it['offset'] * 1e6, 2).tolist()} um "
                                        f"({fb.n_cameras} cameras), next move {fb.move_steps} steps")
+                done.append(it)
+                if gh.is_cancel_requested:        # the stage is settled here: stop before the next move
+                    raise _Canceled()
 
+            done = []
             r = drive_to(self.cell, probe, loc, tol_m=(goal.tolerance if goal.tolerance > 0 else None),
                          max_iter=int(goal.max_moves) if goal.max_moves > 0 else int(self.p["max_moves"]),
                          progress=feedback)
@@ -168,6 +163,15 @@ class PicmsTargetingNode(Node):
             else:
                 self.get_logger().error(f"target failed: {res.message}")
                 gh.abort()
+        except _Canceled:
+            last = done[-1]
+            res.success, res.iterations = False, len(done)
+            res.q = [float(v) for v in last["q"]]
+            res.iteration_offsets = [float(v) for it in done for v in it["offset"]]
+            res.message = (f"{what}: canceled after {len(done)} iterations; stage settled at "
+                           f"{np.round(last['q'] * 1e3, 4).tolist()} mm, no move pending")
+            self.get_logger().info(res.message)
+            gh.canceled()
         except (TargetingError, ValueError, TimeoutError) as exc:
             res.success, res.message = False, str(exc)
             self.get_logger().error(f"target failed: {exc}")

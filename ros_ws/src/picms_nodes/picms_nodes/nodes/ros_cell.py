@@ -22,13 +22,13 @@ from geometry_msgs.msg import PointStamped
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import CameraInfo, Image, JointState
-from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+from trajectory_msgs.msg import JointTrajectory
 
 from ct_calib_nodes.nodes.bad_input import BadInputCounter
 from ct_calib_nodes.nodes.runner import QOS_LATCHED
 
 from ..core.cellio import Settled, SettleTimeout
-from ..io.convert import MessageError, image_array, intrinsics_from_camera_info, joint_positions, point, stamp_ns
+from ..io.convert import MessageError, image_array, intrinsics_from_camera_info, joint_positions, point, stage_command, stamp_ns
 from .common import COMMAND_TOPIC, IMAGE_TOPIC, INFO_TOPIC, JOINTS_TOPIC, SMR_TOPIC
 
 
@@ -147,12 +147,7 @@ class RosCell:
         if not np.all(np.isfinite(q)):
             raise ValueError(f"move_and_settle: target is not finite: {q}")
         t_cmd = self.node.get_clock().now().nanoseconds
-        m = JointTrajectory()
-        m.joint_names = ["x", "y", "z"]
-        pt = JointTrajectoryPoint()
-        pt.positions = [float(v) for v in q]
-        m.points = [pt]
-        self.cmd.publish(m)
+        self.cmd.publish(stage_command(q))
         return self._settle(t_cmd, timeout_s, target=q)
 
     def current(self) -> Settled:
@@ -239,3 +234,30 @@ class RosCell:
         q = run2[2]
         return Settled(q=q.mean(0), stamp_ns=int(max(stamps.values())), images=images,
                        tracker={n: sums[n] / nn[n] for n in nn}, tracker_n=nn, q_sd=q.std(0))
+
+
+# Parameters and set-up shared by the nodes that drive the probe through a RosCell (targeting, measurement).
+CELL_PARAMS = {
+    "cell_file": ("", "picms_cell.yaml; empty = the package's config/picms_cell.yaml [path]"),
+    "calibration_file": ("picms_calibration.yaml", "the Pixel Probe calibration (picms_calibration.yaml) [path]"),
+    "cameras": (["camera_1", "camera_2", "camera_3"], "cameras of the Pixel Probe [-]"),
+    "settle_tol_m": (2.5e-7, "encoder readings within this span count as still [m]"),
+    "settle_hold_s": (0.3, "still for this long counts as settled [s]"),
+    "tracker_window_s": (0.5, "average tracker readings over this long once settled [s]"),
+    "frame_timeout_s": (20.0, "wait this long for a settled frame from every camera [s]"),
+    "image_reliable": (True, "subscribe images reliably (false to match a best-effort camera driver) [-]"),
+    "ready_timeout_s": (20.0, "wait this long for joint_states, CameraInfo and the stage [s]"),
+}
+
+
+def open_cell(node, p):
+    """(cell YAML dict, RosCell) from the CELL_PARAMS values p of a node."""
+    from ..io.files import read_cell  # noqa: PLC0415
+    from .picms_calibration import _default_cell  # noqa: PLC0415
+    cell_yaml = read_cell(p["cell_file"] or _default_cell())
+    cell = RosCell(node, p["cameras"], float(cell_yaml["stage"]["resolution"]),
+                   list(cell_yaml["tracker"]["constellation"]),
+                   settle_tol_m=float(p["settle_tol_m"]), settle_hold_s=float(p["settle_hold_s"]),
+                   tracker_window_s=float(p["tracker_window_s"]), image_reliable=bool(p["image_reliable"]),
+                   frame_timeout_s=float(p["frame_timeout_s"]))
+    return cell_yaml, cell
