@@ -38,7 +38,7 @@ TRUTH = os.path.join(HERE, "..", "..", "bags", "samples", "ct_helix49_384px.trut
 SDD = 1.04821
 
 
-def run(npx, seeds, tube):
+def run(npx, seeds, tube, settings=None):
     tr = yaml.safe_load(open(TRUTH))
     pitch = 0.00107 * 384 / npx
     det = DetectorSpec(npx, npx, pitch)
@@ -55,7 +55,7 @@ def run(npx, seeds, tube):
             for j in range(6):
                 fr = render_projection(w, np.array(tr["motions"][k]), 2 * np.pi * j / 6 + 0.1 * seed, ref, det, rs,
                                        rng)
-                d = D.detect_spheres(fr.image, flat_field_counts=50000.0, diameter_px_range=dr, sdd_px=SDD / pitch,
+                d = D.detect_spheres(fr.image, flat_field_counts=50000.0, diameter_px_range=dr, sdd_px=SDD / pitch, settings=settings,
                                      principal_point_px=pp)
                 t = fr.truth
                 dd = np.linalg.norm(d.centre_px[:, None] - t.ellipse_centre_px[None], axis=2)
@@ -95,10 +95,14 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--pixels", type=int, default=384)
     ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--edge-spread-px", type=float, default=None,
+                    help="DetectionSettings.edge_spread_px (default: estimated per frame; 0 = no blur correction)")
     args = ap.parse_args()
-    out = {"pixels": args.pixels, "seeds": args.seeds, "frames_per_case": 18 * args.seeds}
+    st = D.DetectionSettings(edge_spread_px=args.edge_spread_px)
+    out = {"pixels": args.pixels, "seeds": args.seeds, "frames_per_case": 18 * args.seeds,
+           "edge_spread_px": args.edge_spread_px}
     for name, tube in (("tube", True), ("no_tube", False)):
-        out[name] = run(args.pixels, args.seeds, tube)
+        out[name] = run(args.pixels, args.seeds, tube, st)
         for part, s in out[name].items():
             if s["n"] >= 3:
                 print(f"{name:8s} {part:10s} n={s['n']:5d} radial {s['radial_mean_px']:+.5f} +- {s['radial_se_px']:.5f} px"

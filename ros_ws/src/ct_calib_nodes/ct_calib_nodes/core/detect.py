@@ -255,6 +255,7 @@ class DetectionSettings:
     background_edge_clusters: float = 1.0
     background_edge_refit: bool = True
     max_corner_misfit: float | None = 1.5
+    edge_spread_px: float | None = None
 
     def __post_init__(self):
         if self.ellipse_fitter not in ("fitEllipse", "fitEllipseAMS", "fitEllipseDirect", "geometric"):
@@ -1507,7 +1508,7 @@ class _Measurement:
     corner: set = None      # candidates measured with the corner model
 
 
-def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True):
+def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True, spread2=None):
     """Sub-pixel edge points along rays (vectorised over candidates).
 
     Pass 1: ``n_rays/2`` rays over the whole edge zone, which also measure the inner shadow
@@ -1550,6 +1551,19 @@ def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True)
     frac = np.where(valid, (level[:, None] - q0) / np.where(dq > 0, dq, 1.0), 0.0)
     dr = (w_in + w_out) / (ns - 1)
     r_edge = r_s[np.arange(nc)[:, None], k] + frac * dr[:, None]
+    if first and spread2 is None:
+        spread2 = _edge_spread2(dq / dr[:, None], level, valid, st)
+    if spread2:
+        # the detector blurs the product shadow x background; dividing by the (blurred)
+        # background leaves the shadow moved by -spread^2 grad ln B (first order in the
+        # background's gradient): put each edge point back along its ray
+        ex0 = centre[:, 0, None] + cphi[None, :] * r_edge
+        ey0 = centre[:, 1, None] + sphi[None, :] * r_edge
+        bp, _ = _background_at(model, ex0 + cphi[None, :], ey0 + sphi[None, :])
+        bm, _ = _background_at(model, ex0 - cphi[None, :], ey0 - sphi[None, :])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            glog = 0.5 * np.log(np.maximum(bp, 1e-6) / np.maximum(bm, 1e-6))
+        r_edge = r_edge + spread2 * np.where(np.isfinite(glog), glog, 0.0)
     ex = centre[:, 0, None] + cphi[None, :] * r_edge
     ey = centre[:, 1, None] + sphi[None, :] * r_edge
     # edge points where the background itself changes fast across the structure (> gradient
@@ -1567,7 +1581,24 @@ def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True)
                     g[j] = _bilinear(cm.grad, np.clip(ex[j] - cm.x0, 0, cm.grad.shape[1] - 1),
                                      np.clip(ey[j] - cm.y0, 0, cm.grad.shape[0] - 1))
         on_edge = valid & (g > st.background_edge_gradient)
-    return ex, ey, valid, level, qmin, on_edge, nr
+    return ex, ey, valid, level, qmin, on_edge, nr, spread2
+
+
+def _edge_spread2(slope, level, valid, st):
+    """Variance [px^2] of the detector's edge spread (blur and pixel aperture together) from the
+    shadows' own edges: a sphere's silhouette edge is a step at pixel scale, and a step of
+    height h blurred by a Gaussian of sd s rises at h / (s sqrt(2 pi)) at its half-way
+    point. Median over every ray of the frame (robust to band edges and neighbours);
+    ``st.edge_spread_px`` overrides it, 0 switches the correction off."""
+    if st.edge_spread_px is not None:
+        return float(st.edge_spread_px) ** 2
+    h = (1.0 - level) / st.edge_level                    # shadow depth of each candidate
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = h[:, None] / (np.sqrt(2.0 * np.pi) * slope)
+    s = s[valid & np.isfinite(s) & (s > 0)]
+    if s.size < 16:
+        return 0.0
+    return float(np.median(s)) ** 2
 
 
 def _fit_rows(ex, ey, sel, rows_, fitter):
@@ -1640,7 +1671,7 @@ def _measure_edges_and_fit(trans, model, cand, st):
     sums = np.zeros((nc, 3))
     shift = np.zeros((nc, 2))
     edge_frac = np.zeros(nc)
-    level = qmin = None
+    level = qmin = spread2 = None
     n_fits = 0
 
     def _fail(rows_, msg_of):
@@ -1651,8 +1682,8 @@ def _measure_edges_and_fit(trans, model, cand, st):
     for pas in range(int(st.n_passes)):
         first = pas == 0
         last_pass = pas == int(st.n_passes) - 1
-        ex, ey, valid, level, qm, on_edge, nr = _edge_points(trans, model, centre, radius, st, first, level,
-                                                             want_edge=last_pass)
+        ex, ey, valid, level, qm, on_edge, nr, spread2 = _edge_points(trans, model, centre, radius, st, first,
+                                                                      level, want_edge=last_pass, spread2=spread2)
         if first:
             qmin = qm
         if last_pass:
