@@ -1552,7 +1552,7 @@ def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True,
     dr = (w_in + w_out) / (ns - 1)
     r_edge = r_s[np.arange(nc)[:, None], k] + frac * dr[:, None]
     if first and spread2 is None:
-        spread2 = _edge_spread2(dq / dr[:, None], level, valid, st)
+        spread2 = _edge_spread2(dq / dr[:, None], level, valid, q_in, r_s[:, n_in // 2], radius, dr, st)
     if spread2:
         # the detector blurs the product shadow x background; dividing by the (blurred)
         # background leaves the shadow moved by -spread^2 grad ln B (first order in the
@@ -1584,21 +1584,64 @@ def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True,
     return ex, ey, valid, level, qmin, on_edge, nr, spread2
 
 
-def _edge_spread2(slope, level, valid, st):
+def _edge_spread2(slope, level, valid, q_in, r_in, radius, dr, st):
     """Variance [px^2] of the detector's edge spread (blur and pixel aperture together) from the
-    shadows' own edges: a sphere's silhouette edge is a step at pixel scale, and a step of
-    height h blurred by a Gaussian of sd s rises at h / (s sqrt(2 pi)) at its half-way
-    point. Median over every ray of the frame (robust to band edges and neighbours);
-    ``st.edge_spread_px`` overrides it, 0 switches the correction off."""
+    shadows' own edges, or ``st.edge_spread_px`` squared when set (0 switches the correction off).
+
+    A step of height h blurred by a Gaussian of sd s rises at h / (s sqrt(2 pi)) at its half-way
+    point; the median over every ray of the frame of that "apparent" s (robust to band edges and
+    neighbours) also holds the sphere's own soft edge (chord 2 sqrt(R^2 - r^2) of a homogeneous
+    ball). That part is taken out with the frame's median ball: attenuation per px from the
+    inner shadow level ``q_in`` at ``r_in``, radius ``radius``; the 1-D profile is blurred for a
+    grid of s and the apparent s of each (its slope taken over the rays' sample spacing ``dr``,
+    as measured) is matched to the measured one."""
     if st.edge_spread_px is not None:
         return float(st.edge_spread_px) ** 2
     h = (1.0 - level) / st.edge_level                    # shadow depth of each candidate
     with np.errstate(divide="ignore", invalid="ignore"):
         s = h[:, None] / (np.sqrt(2.0 * np.pi) * slope)
-    s = s[valid & np.isfinite(s) & (s > 0)]
-    if s.size < 16:
+    good = valid & np.isfinite(s) & (s > 0)
+    if np.count_nonzero(good) < 16:
         return 0.0
-    return float(np.median(s)) ** 2
+    s_app = float(np.median(s[good]))
+    rows_ = good.any(axis=1)
+    R = float(np.median(radius[rows_]))
+    chord = 2.0 * np.sqrt(np.maximum(radius ** 2 - r_in ** 2, 1e-9))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mu = -np.log(np.clip(q_in, 1e-6, 1.0)) / chord
+    mu = float(np.median(mu[rows_]))
+    f_in = float(np.median(r_in[rows_] / radius[rows_]))
+    h_dr = 0.5 * float(np.median(dr[rows_]))
+    if not (R > 2.0 and mu > 0 and np.isfinite(mu)):
+        return s_app ** 2
+    # 1-D model of the ray profile near the edge, blurred (by FFT) for a grid of s
+    dx = 0.02
+    x = np.arange(-R * (1.0 - f_in) - 2.0, 10.0, dx)      # distance outside the edge [px]
+    r = R + x
+    prof = np.exp(-2.0 * mu * np.sqrt(np.clip(R * R - r * r, 0.0, None)))
+    n = 1 << int(np.ceil(np.log2(x.size + 1200)))
+    pad = np.full(n, 1.0)
+    pad[:x.size] = prof
+    pad[n - 600:] = prof[0]                           # the shadow side continued (circular FFT)
+    f = np.fft.rfftfreq(n, dx)
+    sig = np.linspace(0.05, 3.0, 60)
+    b_all = np.fft.irfft(np.fft.rfft(pad)[None, :] * np.exp(-2.0 * (np.pi * f[None, :] * sig[:, None]) ** 2),
+                         n, axis=1)[:, :x.size]
+    app = np.full(sig.size, np.nan)
+    x_in = R * (f_in - 1.0)
+    for k, b in enumerate(b_all):
+        qi = np.interp(x_in, x, b)
+        lev = 1.0 - st.edge_level * (1.0 - qi)
+        m = np.nonzero((b[:-1] < lev) & (b[1:] >= lev))[0]
+        if m.size:
+            xc = x[m[-1]]
+            sl = (np.interp(xc + h_dr, x, b) - np.interp(xc - h_dr, x, b)) / (2.0 * h_dr)
+            app[k] = (1.0 - qi) / (np.sqrt(2.0 * np.pi) * sl)
+    ok = np.isfinite(app)
+    if np.count_nonzero(ok) < 2 or s_app <= app[ok][0]:
+        return 0.0 if np.count_nonzero(ok) >= 2 else s_app ** 2
+    return float(np.interp(s_app, app[ok], sig[ok])) ** 2
+
 
 
 def _fit_rows(ex, ey, sel, rows_, fitter):
