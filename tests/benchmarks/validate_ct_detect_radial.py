@@ -38,13 +38,13 @@ TRUTH = os.path.join(HERE, "..", "..", "bags", "samples", "ct_helix49_384px.trut
 SDD = 1.04821
 
 
-def run(npx, seeds, tube, settings=None):
+def run(npx, seeds, tube, settings=None, tube_oversample=1):
     tr = yaml.safe_load(open(TRUTH))
     pitch = 0.00107 * 384 / npx
     det = DetectorSpec(npx, npx, pitch)
     w = np.array(tr["static_w"])
     ref = helix49() if tube else dataclasses.replace(helix49(), tube=None)
-    rs = RenderSettings(blur_sigma_px=0.7, oversample=4, tube_oversample=1, ellipse_centre_bias=True,
+    rs = RenderSettings(blur_sigma_px=0.7, oversample=4, tube_oversample=tube_oversample, ellipse_centre_bias=True,
                         touch_gap_px=1.0)
     pp = np.array([(npx - 1) / 2.0, (npx - 1) / 2.0])
     raw, cor, rho, zr, edge = [], [], [], [], []
@@ -97,12 +97,16 @@ def main():
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--edge-spread-px", type=float, default=None,
                     help="DetectionSettings.edge_spread_px (default: estimated per frame; 0 = no blur correction)")
+    ap.add_argument("--tube-oversample", type=int, default=1,
+                    help="RenderSettings.tube_oversample (1: the tube point-sampled outside the sphere boxes, "
+                         "pixel-averaged inside them; 4: pixel-averaged everywhere, as a detector integrates)")
     args = ap.parse_args()
     st = D.DetectionSettings(edge_spread_px=args.edge_spread_px)
     out = {"pixels": args.pixels, "seeds": args.seeds, "frames_per_case": 18 * args.seeds,
-           "edge_spread_px": args.edge_spread_px}
+           "edge_spread_px": args.edge_spread_px,
+           "tube_oversample": args.tube_oversample}
     for name, tube in (("tube", True), ("no_tube", False)):
-        out[name] = run(args.pixels, args.seeds, tube, st)
+        out[name] = run(args.pixels, args.seeds, tube, st, args.tube_oversample)
         for part, s in out[name].items():
             if s["n"] >= 3:
                 print(f"{name:8s} {part:10s} n={s['n']:5d} radial {s['radial_mean_px']:+.5f} +- {s['radial_se_px']:.5f} px"
