@@ -38,7 +38,7 @@ TRUTH = os.path.join(HERE, "..", "..", "bags", "samples", "ct_helix49_384px.trut
 SDD = 1.04821
 
 
-def run(npx, seeds, tube, settings=None, tube_oversample=1, counts=50000.0):
+def run(npx, seeds, tube, settings=None, tube_oversample=1, counts=50000.0, first_seed=0):
     tr = yaml.safe_load(open(TRUTH))
     pitch = 0.00107 * 384 / npx
     det = DetectorSpec(npx, npx, pitch)
@@ -48,7 +48,7 @@ def run(npx, seeds, tube, settings=None, tube_oversample=1, counts=50000.0):
                         touch_gap_px=1.0, flat_field_counts=counts)
     pp = np.array([(npx - 1) / 2.0, (npx - 1) / 2.0])
     raw, cor, rho, zr, edge = [], [], [], [], []
-    for seed in range(seeds):
+    for seed in range(first_seed, first_seed + seeds):
         rng = np.random.default_rng(100 + seed)
         for k, srd in enumerate(tr["srd_reported_m"]):
             dr = D.shadow_diameter_range_px(ref.diameters_m, ref.centres_of_m, SDD, srd, pitch)
@@ -100,14 +100,15 @@ def main():
     ap.add_argument("--tube-oversample", type=int, default=1,
                     help="RenderSettings.tube_oversample (1: the tube point-sampled outside the sphere boxes, "
                          "pixel-averaged inside them; 4: pixel-averaged everywhere, as a detector integrates)")
+    ap.add_argument("--first-seed", type=int, default=0, help="noise/angle seeds first_seed .. first_seed + seeds - 1")
     ap.add_argument("--counts", type=float, default=50000.0, help="open-beam counts per pixel")
     args = ap.parse_args()
     st = D.DetectionSettings(edge_spread_px=args.edge_spread_px)
     out = {"pixels": args.pixels, "seeds": args.seeds, "frames_per_case": 18 * args.seeds,
            "edge_spread_px": args.edge_spread_px,
-           "tube_oversample": args.tube_oversample, "counts": args.counts}
+           "tube_oversample": args.tube_oversample, "counts": args.counts, "first_seed": args.first_seed}
     for name, tube in (("tube", True), ("no_tube", False)):
-        out[name] = run(args.pixels, args.seeds, tube, st, args.tube_oversample, args.counts)
+        out[name] = run(args.pixels, args.seeds, tube, st, args.tube_oversample, args.counts, args.first_seed)
         for part, s in out[name].items():
             if s["n"] >= 3:
                 print(f"{name:8s} {part:10s} n={s['n']:5d} radial {s['radial_mean_px']:+.5f} +- {s['radial_se_px']:.5f} px"

@@ -194,6 +194,12 @@ class DetectionSettings:
         Directions of the segmentation closings (180 deg / n apart).
     snap_deg : float
         Local background orientations within this of a pixel axis are snapped to it.
+    snap_sigma : float
+        ... or within this many standard deviations of the orientation's own noise (0 = off).
+    edge_spread_px : float or None
+        Sd of the detector's edge spread (blur and pixel aperture) for the blur correction of
+        edge points on a background gradient (see :func:`_edge_spread2`); None estimates it per
+        frame from the shadows' edges, 0 switches the correction off.
     exclusion_px : float
         Margin beyond the blob radius left out of the local background fit (blur, penumbra).
     background_span_px : float
@@ -256,6 +262,7 @@ class DetectionSettings:
     background_edge_refit: bool = True
     max_corner_misfit: float | None = 1.5
     edge_spread_px: float | None = None
+    snap_sigma: float = 2.0
 
     def __post_init__(self):
         if self.ellipse_fitter not in ("fitEllipse", "fitEllipseAMS", "fitEllipseDirect", "geometric"):
@@ -1099,6 +1106,15 @@ def _local_backgrounds(trans, bg, cand, st):
     n_keep = np.maximum(np.count_nonzero(keep, axis=(1, 2)), 1)
     minor = 0.5 * (jxx + jyy - root) / (2.0 * cand.noise ** 2 * n_keep)
     snap = np.deg2rad(st.snap_deg)
+    if st.snap_sigma:
+        # and within snap_sigma sd of the direction's own noise: weak structure in a small window
+        # gives a noisy direction, and a grid turned by noise samples a sharp band between pixels
+        # (bilinear) while the profiles see it differently, which biases the centre. The noise
+        # of the off-diagonal term across the structure, 2 s^2 J + 4 s^4 n (s^2 the variance of a
+        # pixel, a central difference 2 s^2), over the anisotropy gives sd(2 theta) / 2.
+        s2n = cand.noise.astype(np.float64) ** 2
+        sd_theta = np.sqrt(2.0 * s2n * (jxx + jyy) + 4.0 * s2n ** 2 * n_keep) / np.maximum(root, 1e-30)
+        snap = np.maximum(snap, st.snap_sigma * sd_theta)
     q = np.round(theta / (0.5 * np.pi)) * (0.5 * np.pi)
     snapped = np.abs(theta - q) < snap
     theta = np.where(snapped, q, theta)
