@@ -195,7 +195,8 @@ class DetectionSettings:
     snap_deg : float
         Local background orientations within this of a pixel axis are snapped to it.
     snap_sigma : float
-        ... or within this many standard deviations of the orientation's own noise (0 = off).
+        A window's orientation within this many standard deviations of its own noise of the
+        frame's dominant orientation is replaced by the frame's (0 = off).
     edge_spread_px : float or None
         Sd of the detector's edge spread (blur and pixel aperture) for the blur correction of
         edge points on a background gradient (see :func:`_edge_spread2`); None estimates it per
@@ -262,7 +263,7 @@ class DetectionSettings:
     background_edge_refit: bool = True
     max_corner_misfit: float | None = 1.5
     edge_spread_px: float | None = None
-    snap_sigma: float = 2.0
+    snap_sigma: float = 4.0
 
     def __post_init__(self):
         if self.ellipse_fitter not in ("fitEllipse", "fitEllipseAMS", "fitEllipseDirect", "geometric"):
@@ -1106,15 +1107,19 @@ def _local_backgrounds(trans, bg, cand, st):
     n_keep = np.maximum(np.count_nonzero(keep, axis=(1, 2)), 1)
     minor = 0.5 * (jxx + jyy - root) / (2.0 * cand.noise ** 2 * n_keep)
     snap = np.deg2rad(st.snap_deg)
-    if st.snap_sigma:
-        # and within snap_sigma sd of the direction's own noise: weak structure in a small window
-        # gives a noisy direction, and a grid turned by noise samples a sharp band between pixels
-        # (bilinear) while the profiles see it differently, which biases the centre. The noise
-        # of the off-diagonal term across the structure, 2 s^2 J + 4 s^4 n (s^2 the variance of a
-        # pixel, a central difference 2 s^2), over the anisotropy gives sd(2 theta) / 2.
-        s2n = cand.noise.astype(np.float64) ** 2
-        sd_theta = np.sqrt(2.0 * s2n * (jxx + jyy) + 4.0 * s2n ** 2 * n_keep) / np.maximum(root, 1e-30)
-        snap = np.maximum(snap, st.snap_sigma * sd_theta)
+    if st.snap_sigma and nc > 1:
+        # a window whose direction is within snap_sigma sd of its own noise of the frame's
+        # dominant direction (the summed tensor of every window) takes the frame's: weak
+        # structure in a small window gives a noisy direction, and a grid turned by noise samples
+        # a sharp band between pixels (bilinear) where the profiles see it otherwise, which
+        # biases the centre. The noise of the off-diagonal term across the structure,
+        # 2 s^2 J + 4 s^4 n (s^2 a pixel's variance, a central difference 2 s^2), over the
+        # anisotropy gives the sd of 2 theta.
+        s2n = np.asarray(cand.noise, np.float64) ** 2 * np.ones(nc)
+        sd_theta = 0.5 * np.sqrt(2.0 * s2n * (jxx + jyy) + 4.0 * s2n ** 2 * n_keep) / np.maximum(root, 1e-30)
+        tf = 0.5 * np.arctan2(2 * jxy.sum(), jxx.sum() - jyy.sum())
+        d_f = np.abs((theta - tf + 0.5 * np.pi) % np.pi - 0.5 * np.pi)
+        theta = np.where(d_f < st.snap_sigma * sd_theta, tf, theta)
     q = np.round(theta / (0.5 * np.pi)) * (0.5 * np.pi)
     snapped = np.abs(theta - q) < snap
     theta = np.where(snapped, q, theta)
@@ -1653,10 +1658,18 @@ def _edge_spread2(slope, level, valid, q_in, r_in, radius, dr, st):
             xc = x[m[-1]]
             sl = (np.interp(xc + h_dr, x, b) - np.interp(xc - h_dr, x, b)) / (2.0 * h_dr)
             app[k] = (1.0 - qi) / (np.sqrt(2.0 * np.pi) * sl)
+    # a soft ball edge makes the apparent s fall with small blurs before it rises: only the
+    # rising branch identifies s; below its minimum the shadows cannot tell the blur (returns 0,
+    # the correction off, e.g. weakly absorbing balls 20 px across)
     ok = np.isfinite(app)
-    if np.count_nonzero(ok) < 2 or s_app <= app[ok][0]:
-        return 0.0 if np.count_nonzero(ok) >= 2 else s_app ** 2
-    return float(np.interp(s_app, app[ok], sig[ok])) ** 2
+    if np.count_nonzero(ok) < 2:
+        return s_app ** 2
+    a_ok, s_ok = app[ok], sig[ok]
+    i0 = int(np.argmin(a_ok))
+    a_ok, s_ok = np.maximum.accumulate(a_ok[i0:]), s_ok[i0:]
+    if s_app <= a_ok[0] or a_ok.size < 2:
+        return 0.0
+    return float(np.interp(s_app, a_ok, s_ok)) ** 2
 
 
 
