@@ -38,24 +38,24 @@ TRUTH = os.path.join(HERE, "..", "..", "bags", "samples", "ct_helix49_384px.trut
 SDD = 1.04821
 
 
-def run(npx, seeds, tube):
+def run(npx, seeds, tube, settings=None, tube_oversample=1, counts=50000.0, first_seed=0):
     tr = yaml.safe_load(open(TRUTH))
     pitch = 0.00107 * 384 / npx
     det = DetectorSpec(npx, npx, pitch)
     w = np.array(tr["static_w"])
     ref = helix49() if tube else dataclasses.replace(helix49(), tube=None)
-    rs = RenderSettings(blur_sigma_px=0.7, oversample=4, tube_oversample=1, ellipse_centre_bias=True,
-                        touch_gap_px=1.0)
+    rs = RenderSettings(blur_sigma_px=0.7, oversample=4, tube_oversample=tube_oversample, ellipse_centre_bias=True,
+                        touch_gap_px=1.0, flat_field_counts=counts)
     pp = np.array([(npx - 1) / 2.0, (npx - 1) / 2.0])
     raw, cor, rho, zr, edge = [], [], [], [], []
-    for seed in range(seeds):
+    for seed in range(first_seed, first_seed + seeds):
         rng = np.random.default_rng(100 + seed)
         for k, srd in enumerate(tr["srd_reported_m"]):
             dr = D.shadow_diameter_range_px(ref.diameters_m, ref.centres_of_m, SDD, srd, pitch)
             for j in range(6):
                 fr = render_projection(w, np.array(tr["motions"][k]), 2 * np.pi * j / 6 + 0.1 * seed, ref, det, rs,
                                        rng)
-                d = D.detect_spheres(fr.image, flat_field_counts=50000.0, diameter_px_range=dr, sdd_px=SDD / pitch,
+                d = D.detect_spheres(fr.image, flat_field_counts=counts, diameter_px_range=dr, sdd_px=SDD / pitch, settings=settings,
                                      principal_point_px=pp)
                 t = fr.truth
                 dd = np.linalg.norm(d.centre_px[:, None] - t.ellipse_centre_px[None], axis=2)
@@ -95,10 +95,20 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--pixels", type=int, default=384)
     ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--edge-spread-px", type=float, default=None,
+                    help="DetectionSettings.edge_spread_px (default: estimated per frame; 0 = no blur correction)")
+    ap.add_argument("--tube-oversample", type=int, default=1,
+                    help="RenderSettings.tube_oversample (1: the tube point-sampled outside the sphere boxes, "
+                         "pixel-averaged inside them; 4: pixel-averaged everywhere, as a detector integrates)")
+    ap.add_argument("--first-seed", type=int, default=0, help="noise/angle seeds first_seed .. first_seed + seeds - 1")
+    ap.add_argument("--counts", type=float, default=50000.0, help="open-beam counts per pixel")
     args = ap.parse_args()
-    out = {"pixels": args.pixels, "seeds": args.seeds, "frames_per_case": 18 * args.seeds}
+    st = D.DetectionSettings(edge_spread_px=args.edge_spread_px)
+    out = {"pixels": args.pixels, "seeds": args.seeds, "frames_per_case": 18 * args.seeds,
+           "edge_spread_px": args.edge_spread_px,
+           "tube_oversample": args.tube_oversample, "counts": args.counts, "first_seed": args.first_seed}
     for name, tube in (("tube", True), ("no_tube", False)):
-        out[name] = run(args.pixels, args.seeds, tube)
+        out[name] = run(args.pixels, args.seeds, tube, st, args.tube_oversample, args.counts, args.first_seed)
         for part, s in out[name].items():
             if s["n"] >= 3:
                 print(f"{name:8s} {part:10s} n={s['n']:5d} radial {s['radial_mean_px']:+.5f} +- {s['radial_se_px']:.5f} px"

@@ -194,6 +194,13 @@ class DetectionSettings:
         Directions of the segmentation closings (180 deg / n apart).
     snap_deg : float
         Local background orientations within this of a pixel axis are snapped to it.
+    snap_sigma : float
+        A window's orientation within this many standard deviations of its own noise of the
+        frame's dominant orientation is replaced by the frame's (0 = off).
+    edge_spread_px : float or None
+        Sd of the detector's edge spread (blur and pixel aperture) for the blur correction of
+        edge points on a background gradient (see :func:`_edge_spread2`); None estimates it per
+        frame from the shadows' edges, 0 switches the correction off.
     exclusion_px : float
         Margin beyond the blob radius left out of the local background fit (blur, penumbra).
     background_span_px : float
@@ -255,6 +262,8 @@ class DetectionSettings:
     background_edge_clusters: float = 1.0
     background_edge_refit: bool = True
     max_corner_misfit: float | None = 1.5
+    edge_spread_px: float | None = None
+    snap_sigma: float = 4.0
 
     def __post_init__(self):
         if self.ellipse_fitter not in ("fitEllipse", "fitEllipseAMS", "fitEllipseDirect", "geometric"):
@@ -1098,6 +1107,19 @@ def _local_backgrounds(trans, bg, cand, st):
     n_keep = np.maximum(np.count_nonzero(keep, axis=(1, 2)), 1)
     minor = 0.5 * (jxx + jyy - root) / (2.0 * cand.noise ** 2 * n_keep)
     snap = np.deg2rad(st.snap_deg)
+    if st.snap_sigma and nc > 1:
+        # a window whose direction is within snap_sigma sd of its own noise of the frame's
+        # dominant direction (the summed tensor of every window) takes the frame's: weak
+        # structure in a small window gives a noisy direction, and a grid turned by noise samples
+        # a sharp band between pixels (bilinear) where the profiles see it otherwise, which
+        # biases the centre. The noise of the off-diagonal term across the structure,
+        # 2 s^2 J + 4 s^4 n (s^2 a pixel's variance, a central difference 2 s^2), over the
+        # anisotropy gives the sd of 2 theta.
+        s2n = np.asarray(cand.noise, np.float64) ** 2 * np.ones(nc)
+        sd_theta = 0.5 * np.sqrt(2.0 * s2n * (jxx + jyy) + 4.0 * s2n ** 2 * n_keep) / np.maximum(root, 1e-30)
+        tf = 0.5 * np.arctan2(2 * jxy.sum(), jxx.sum() - jyy.sum())
+        d_f = np.abs((theta - tf + 0.5 * np.pi) % np.pi - 0.5 * np.pi)
+        theta = np.where(d_f < st.snap_sigma * sd_theta, tf, theta)
     q = np.round(theta / (0.5 * np.pi)) * (0.5 * np.pi)
     snapped = np.abs(theta - q) < snap
     theta = np.where(snapped, q, theta)
@@ -1507,7 +1529,7 @@ class _Measurement:
     corner: set = None      # candidates measured with the corner model
 
 
-def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True):
+def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True, spread2=None):
     """Sub-pixel edge points along rays (vectorised over candidates).
 
     Pass 1: ``n_rays/2`` rays over the whole edge zone, which also measure the inner shadow
@@ -1550,6 +1572,19 @@ def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True)
     frac = np.where(valid, (level[:, None] - q0) / np.where(dq > 0, dq, 1.0), 0.0)
     dr = (w_in + w_out) / (ns - 1)
     r_edge = r_s[np.arange(nc)[:, None], k] + frac * dr[:, None]
+    if first and spread2 is None:
+        spread2 = _edge_spread2(dq / dr[:, None], level, valid, q_in, r_s[:, n_in // 2], radius, dr, st)
+    if spread2:
+        # the detector blurs the product shadow x background; dividing by the (blurred)
+        # background leaves the shadow moved by -spread^2 grad ln B (first order in the
+        # background's gradient): put each edge point back along its ray
+        ex0 = centre[:, 0, None] + cphi[None, :] * r_edge
+        ey0 = centre[:, 1, None] + sphi[None, :] * r_edge
+        bp, _ = _background_at(model, ex0 + cphi[None, :], ey0 + sphi[None, :])
+        bm, _ = _background_at(model, ex0 - cphi[None, :], ey0 - sphi[None, :])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            glog = 0.5 * np.log(np.maximum(bp, 1e-6) / np.maximum(bm, 1e-6))
+        r_edge = r_edge + spread2 * np.where(np.isfinite(glog), glog, 0.0)
     ex = centre[:, 0, None] + cphi[None, :] * r_edge
     ey = centre[:, 1, None] + sphi[None, :] * r_edge
     # edge points where the background itself changes fast across the structure (> gradient
@@ -1567,7 +1602,75 @@ def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True)
                     g[j] = _bilinear(cm.grad, np.clip(ex[j] - cm.x0, 0, cm.grad.shape[1] - 1),
                                      np.clip(ey[j] - cm.y0, 0, cm.grad.shape[0] - 1))
         on_edge = valid & (g > st.background_edge_gradient)
-    return ex, ey, valid, level, qmin, on_edge, nr
+    return ex, ey, valid, level, qmin, on_edge, nr, spread2
+
+
+def _edge_spread2(slope, level, valid, q_in, r_in, radius, dr, st):
+    """Variance [px^2] of the detector's edge spread (blur and pixel aperture together) from the
+    shadows' own edges, or ``st.edge_spread_px`` squared when set (0 switches the correction off).
+
+    A step of height h blurred by a Gaussian of sd s rises at h / (s sqrt(2 pi)) at its half-way
+    point; the median over every ray of the frame of that "apparent" s (robust to band edges and
+    neighbours) also holds the sphere's own soft edge (chord 2 sqrt(R^2 - r^2) of a homogeneous
+    ball). That part is taken out with the frame's median ball: attenuation per px from the
+    inner shadow level ``q_in`` at ``r_in``, radius ``radius``; the 1-D profile is blurred for a
+    grid of s and the apparent s of each (its slope taken over the rays' sample spacing ``dr``,
+    as measured) is matched to the measured one."""
+    if st.edge_spread_px is not None:
+        return float(st.edge_spread_px) ** 2
+    h = (1.0 - level) / st.edge_level                    # shadow depth of each candidate
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = h[:, None] / (np.sqrt(2.0 * np.pi) * slope)
+    good = valid & np.isfinite(s) & (s > 0)
+    if np.count_nonzero(good) < 16:
+        return 0.0
+    s_app = float(np.median(s[good]))
+    rows_ = good.any(axis=1)
+    R = float(np.median(radius[rows_]))
+    chord = 2.0 * np.sqrt(np.maximum(radius ** 2 - r_in ** 2, 1e-9))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mu = -np.log(np.clip(q_in, 1e-6, 1.0)) / chord
+    mu = float(np.median(mu[rows_]))
+    f_in = float(np.median(r_in[rows_] / radius[rows_]))
+    h_dr = 0.5 * float(np.median(dr[rows_]))
+    if not (R > 2.0 and mu > 0 and np.isfinite(mu)):
+        return s_app ** 2
+    # 1-D model of the ray profile near the edge, blurred (by FFT) for a grid of s
+    dx = 0.02
+    x = np.arange(-R * (1.0 - f_in) - 2.0, 10.0, dx)      # distance outside the edge [px]
+    r = R + x
+    prof = np.exp(-2.0 * mu * np.sqrt(np.clip(R * R - r * r, 0.0, None)))
+    n = 1 << int(np.ceil(np.log2(x.size + 1200)))
+    pad = np.full(n, 1.0)
+    pad[:x.size] = prof
+    pad[n - 600:] = prof[0]                           # the shadow side continued (circular FFT)
+    f = np.fft.rfftfreq(n, dx)
+    sig = np.linspace(0.05, 3.0, 60)
+    b_all = np.fft.irfft(np.fft.rfft(pad)[None, :] * np.exp(-2.0 * (np.pi * f[None, :] * sig[:, None]) ** 2),
+                         n, axis=1)[:, :x.size]
+    app = np.full(sig.size, np.nan)
+    x_in = R * (f_in - 1.0)
+    for k, b in enumerate(b_all):
+        qi = np.interp(x_in, x, b)
+        lev = 1.0 - st.edge_level * (1.0 - qi)
+        m = np.nonzero((b[:-1] < lev) & (b[1:] >= lev))[0]
+        if m.size:
+            xc = x[m[-1]]
+            sl = (np.interp(xc + h_dr, x, b) - np.interp(xc - h_dr, x, b)) / (2.0 * h_dr)
+            app[k] = (1.0 - qi) / (np.sqrt(2.0 * np.pi) * sl)
+    # a soft ball edge makes the apparent s fall with small blurs before it rises: only the
+    # rising branch identifies s; below its minimum the shadows cannot tell the blur (returns 0,
+    # the correction off, e.g. weakly absorbing balls 20 px across)
+    ok = np.isfinite(app)
+    if np.count_nonzero(ok) < 2:
+        return s_app ** 2
+    a_ok, s_ok = app[ok], sig[ok]
+    i0 = int(np.argmin(a_ok))
+    a_ok, s_ok = np.maximum.accumulate(a_ok[i0:]), s_ok[i0:]
+    if s_app <= a_ok[0] or a_ok.size < 2:
+        return 0.0
+    return float(np.interp(s_app, a_ok, s_ok)) ** 2
+
 
 
 def _fit_rows(ex, ey, sel, rows_, fitter):
@@ -1640,7 +1743,7 @@ def _measure_edges_and_fit(trans, model, cand, st):
     sums = np.zeros((nc, 3))
     shift = np.zeros((nc, 2))
     edge_frac = np.zeros(nc)
-    level = qmin = None
+    level = qmin = spread2 = None
     n_fits = 0
 
     def _fail(rows_, msg_of):
@@ -1651,8 +1754,8 @@ def _measure_edges_and_fit(trans, model, cand, st):
     for pas in range(int(st.n_passes)):
         first = pas == 0
         last_pass = pas == int(st.n_passes) - 1
-        ex, ey, valid, level, qm, on_edge, nr = _edge_points(trans, model, centre, radius, st, first, level,
-                                                             want_edge=last_pass)
+        ex, ey, valid, level, qm, on_edge, nr, spread2 = _edge_points(trans, model, centre, radius, st, first,
+                                                                      level, want_edge=last_pass, spread2=spread2)
         if first:
             qmin = qm
         if last_pass:
