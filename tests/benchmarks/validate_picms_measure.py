@@ -10,7 +10,8 @@ Errors against truth: sizes (square sides, diameters, rectangle sides), centre d
 same-size features and the bolt circle, dot-grid spacing means per category, in the stage
 (tracker-free) mode and the tracker mode of the same points; size z-scores (error / stated u);
 targeting iterations and moves per point; wall time per point (this machine, loaded, rendering
-included). --estimate-band ignores the flange program's edge_band_m (the band width is then
+included). --no-stage-errors simulates a rigid stage (the stage error motions of
+core/stage_errors.py are on by default). --estimate-band ignores the flange program's edge_band_m (the band width is then
 estimated from the images). Ends by printing ONE JSON line.
 """
 from __future__ import annotations
@@ -44,6 +45,8 @@ def main(argv=None) -> int:
     ap.add_argument("--programs", nargs="+", default=["targets", "flange"])
     ap.add_argument("--only", default=None)
     ap.add_argument("--estimate-band", action="store_true")
+    ap.add_argument("--no-stage-errors", action="store_true",
+                    help="a rigidly translating stage (no scale / straightness / angular error motions)")
     a = ap.parse_args(argv)
     only = a.only.split(",") if a.only else None
     agg = {}
@@ -57,7 +60,7 @@ def main(argv=None) -> int:
         for seed in a.seeds:
             t0 = time.perf_counter()
             try:
-                truth, probe, cal = calibrated_cell(seed)
+                truth, probe, cal = calibrated_cell(seed, stage_error_motions=not a.no_stage_errors)
                 rng = np.random.default_rng(seed + 1000)
                 part = placed_part(scene, rng)
                 run = measure.measure(FullFirstFrame(cellio.SimCell(truth, rng, part)), probe, program, only_features=only)
