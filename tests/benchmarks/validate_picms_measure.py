@@ -30,11 +30,11 @@ from picms_nodes.measure_report import dimension_table, truth_for_report, truth_
 from picms_nodes.measure_sim import FullFirstFrame, calibrated_cell, config_file, placed_part
 
 
-def zscores(doc, truth):
+def zscores(doc, truth, kind="size"):
     z = []
     for r in dimension_table(doc):
         tv = truth_value(r, truth)
-        if r["kind"] == "size" and tv is not None and r["u"]:
+        if r["kind"] == kind and tv is not None and r["u"]:
             z.append((r["value"] - tv) / r["u"])
     return z
 
@@ -55,7 +55,8 @@ def main(argv=None) -> int:
         program = part_program.load(config_file(pfile))
         if a.estimate_band:
             program = replace(program, features=tuple(replace(f, band_m=None) for f in program.features))
-        res = {"stage": {"size": [], "dist": [], "grid": [], "z": []}, "tracker": {"size": [], "dist": [], "grid": [], "z": []},
+        res = {"stage": {"size": [], "dist": [], "grid": [], "z": [], "dz": []},
+               "tracker": {"size": [], "dist": [], "grid": [], "z": [], "dz": []},
                "iterations": [], "moves": [], "time_per_point_s": [], "failed_points": 0, "runs": 0, "errors": []}
         for seed in a.seeds:
             t0 = time.perf_counter()
@@ -77,6 +78,7 @@ def main(argv=None) -> int:
                 res[mode]["dist"] += e["distance_err_um"]
                 res[mode]["grid"] += e["grid_mean_err_um"]
                 res[mode]["z"] += zscores(d, tr)
+                res[mode]["dz"] += zscores(d, tr, "distance")
             ok = [mp for mp in run.points if mp.ok]
             res["failed_points"] += len(run.points) - len(ok)
             res["iterations"] += [mp.iterations for mp in ok]
@@ -96,6 +98,8 @@ def main(argv=None) -> int:
             **{f"{mode}_{k}_err_um": st(res[mode][k]) for mode in ("stage", "tracker") for k in ("size", "dist", "grid")},
             "stage_size_z_rms": round(float(np.sqrt(np.mean(np.square(res["stage"]["z"])))), 2) if res["stage"]["z"] else None,
             "tracker_size_z_rms": round(float(np.sqrt(np.mean(np.square(res["tracker"]["z"])))), 2) if res["tracker"]["z"] else None,
+            **{f"{mode}_distance_z_rms": round(float(np.sqrt(np.mean(np.square(res[mode]["dz"])))), 2)
+               if res[mode]["dz"] else None for mode in ("stage", "tracker")},
             "iterations_per_point": round(float(np.mean(res["iterations"])), 2) if res["iterations"] else None,
             "moves_per_point": round(float(np.mean(res["moves"])), 2) if res["moves"] else None,
             "time_per_point_s": round(float(np.median(res["time_per_point_s"])), 2) if res["time_per_point_s"] else None,
