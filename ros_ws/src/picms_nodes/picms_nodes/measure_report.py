@@ -112,6 +112,8 @@ def write_report(doc: dict, out_dir, *, truth=None, title=None, extra_md: str = 
              f"{np.round(doc['plane']['normal'], 6).tolist()}, fixed angles [tx, ty, tz] = "
              f"{np.round(np.degrees(doc['plane']['fixed_angles_rad']), 4).tolist()} deg, flatness "
              f"{_um(doc['plane']['flatness'])} um over {doc['plane'].get('n_points', '?')} points.")
+    if doc.get("u_scope"):
+        L += ["", f"Uncertainties (u, k = 1): {doc['u_scope']}."]
     sm = doc.get("summary") or {}
     if sm:
         L.append(f"Targeting: {sm.get('iterations_mean', 0):.2f} triangulations and {sm.get('moves_mean', 0):.2f} "
