@@ -11,8 +11,8 @@ same-size features and the bolt circle, dot-grid spacing means per category, in 
 (tracker-free) mode and the tracker mode of the same points; size z-scores (error / stated u);
 targeting iterations and moves per point; wall time per point (this machine, loaded, rendering
 included). --no-stage-errors simulates a rigid stage (the stage error motions of
-core/stage_errors.py are on by default). --estimate-band ignores the flange program's edge_band_m (the band width is then
-estimated from the images). Ends by printing ONE JSON line.
+core/stage_errors.py are on by default). --estimate-band ignores the flange program's
+edge_band_m (the band width is then estimated from the images). Ends by printing ONE JSON line.
 """
 from __future__ import annotations
 

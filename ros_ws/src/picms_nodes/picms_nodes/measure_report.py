@@ -55,7 +55,8 @@ def dimension_table(doc: dict) -> list[dict]:
     for a, b in itertools.combinations(feats + [dict(g, type="dot_grid", center_part=np.mean(g["centres_part"], 0))
                                                 for g in doc.get("dot_grids", [])], 2):
         d = float(np.hypot(*(np.asarray(a["center_part"]) - np.asarray(b["center_part"]))))
-        rows.append({"name": f"{a['id']}-{b['id']} centre distance", "value": d, "u": _u_distance(a, b), "kind": "distance",
+        rows.append({"name": f"{a['id']}-{b['id']} centre distance", "value": d, "u": _u_distance(a, b),
+                     "kind": "distance",
                      "members": [a["id"], b["id"]]})
     groups = {}
     for f in feats:
