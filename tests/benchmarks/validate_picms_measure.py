@@ -10,8 +10,9 @@ Errors against truth: sizes (square sides, diameters, rectangle sides), centre d
 same-size features and the bolt circle, dot-grid spacing means per category, in the stage
 (tracker-free) mode and the tracker mode of the same points; size z-scores (error / stated u);
 targeting iterations and moves per point; wall time per point (this machine, loaded, rendering
-included). --estimate-band ignores the flange program's edge_band_m (the band width is then
-estimated from the images). Ends by printing ONE JSON line.
+included). --no-stage-errors simulates a rigid stage (the stage error motions of
+core/stage_errors.py are on by default). --estimate-band ignores the flange program's
+edge_band_m (the band width is then estimated from the images). Ends by printing ONE JSON line.
 """
 from __future__ import annotations
 
@@ -29,11 +30,11 @@ from picms_nodes.measure_report import dimension_table, truth_for_report, truth_
 from picms_nodes.measure_sim import FullFirstFrame, calibrated_cell, config_file, placed_part
 
 
-def zscores(doc, truth):
+def zscores(doc, truth, kind="size"):
     z = []
     for r in dimension_table(doc):
         tv = truth_value(r, truth)
-        if r["kind"] == "size" and tv is not None and r["u"]:
+        if r["kind"] == kind and tv is not None and r["u"]:
             z.append((r["value"] - tv) / r["u"])
     return z
 
@@ -44,6 +45,8 @@ def main(argv=None) -> int:
     ap.add_argument("--programs", nargs="+", default=["targets", "flange"])
     ap.add_argument("--only", default=None)
     ap.add_argument("--estimate-band", action="store_true")
+    ap.add_argument("--no-stage-errors", action="store_true",
+                    help="a rigidly translating stage (no scale / straightness / angular error motions)")
     a = ap.parse_args(argv)
     only = a.only.split(",") if a.only else None
     agg = {}
@@ -52,12 +55,13 @@ def main(argv=None) -> int:
         program = part_program.load(config_file(pfile))
         if a.estimate_band:
             program = replace(program, features=tuple(replace(f, band_m=None) for f in program.features))
-        res = {"stage": {"size": [], "dist": [], "grid": [], "z": []}, "tracker": {"size": [], "dist": [], "grid": [], "z": []},
+        res = {"stage": {"size": [], "dist": [], "grid": [], "z": [], "dz": []},
+               "tracker": {"size": [], "dist": [], "grid": [], "z": [], "dz": []},
                "iterations": [], "moves": [], "time_per_point_s": [], "failed_points": 0, "runs": 0, "errors": []}
         for seed in a.seeds:
             t0 = time.perf_counter()
             try:
-                truth, probe, cal = calibrated_cell(seed)
+                truth, probe, cal = calibrated_cell(seed, stage_error_motions=not a.no_stage_errors)
                 rng = np.random.default_rng(seed + 1000)
                 part = placed_part(scene, rng)
                 run = measure.measure(FullFirstFrame(cellio.SimCell(truth, rng, part)), probe, program, only_features=only)
@@ -74,6 +78,7 @@ def main(argv=None) -> int:
                 res[mode]["dist"] += e["distance_err_um"]
                 res[mode]["grid"] += e["grid_mean_err_um"]
                 res[mode]["z"] += zscores(d, tr)
+                res[mode]["dz"] += zscores(d, tr, "distance")
             ok = [mp for mp in run.points if mp.ok]
             res["failed_points"] += len(run.points) - len(ok)
             res["iterations"] += [mp.iterations for mp in ok]
@@ -93,6 +98,8 @@ def main(argv=None) -> int:
             **{f"{mode}_{k}_err_um": st(res[mode][k]) for mode in ("stage", "tracker") for k in ("size", "dist", "grid")},
             "stage_size_z_rms": round(float(np.sqrt(np.mean(np.square(res["stage"]["z"])))), 2) if res["stage"]["z"] else None,
             "tracker_size_z_rms": round(float(np.sqrt(np.mean(np.square(res["tracker"]["z"])))), 2) if res["tracker"]["z"] else None,
+            **{f"{mode}_distance_z_rms": round(float(np.sqrt(np.mean(np.square(res[mode]["dz"])))), 2)
+               if res[mode]["dz"] else None for mode in ("stage", "tracker")},
             "iterations_per_point": round(float(np.mean(res["iterations"])), 2) if res["iterations"] else None,
             "moves_per_point": round(float(np.mean(res["moves"])), 2) if res["moves"] else None,
             "time_per_point_s": round(float(np.median(res["time_per_point_s"])), 2) if res["time_per_point_s"] else None,

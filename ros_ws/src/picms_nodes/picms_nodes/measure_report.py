@@ -21,6 +21,20 @@ def _mm(x, nd=5):
     return f"{x * 1e3:.{nd}f}"
 
 
+def _u_distance(a: dict, b: dict):
+    """u of the distance of two fitted centres, from the fits' centre u (cx, cy in the plane).
+
+    The fits use disjoint points, so the two centres are taken as independent; the covariance
+    of cx, cy is not kept, so each centre's u along the (unknown in-plane) direction is taken
+    as the rms of u_cx, u_cy (exact for a circle's isotropic centre). None when a member has no
+    centre u (a dot grid's mean centre). Does not include errors shared by both centres (stage
+    scale and error motions, calibrated squareness, camera poses)."""
+    ua, ub = a.get("u_center"), b.get("u_center")
+    if not ua or not ub or any(v is None or not np.isfinite(v) for v in list(ua) + list(ub)):
+        return None
+    return float(math.sqrt((ua[0] ** 2 + ua[1] ** 2 + ub[0] ** 2 + ub[1] ** 2) / 2))
+
+
 def dimension_table(doc: dict) -> list[dict]:
     """Dimensions (Table 1 style): every feature's size(s), the centre distance of every pair of
     features (a dot grid's centre: the mean of its dots), and the circle through >= 3 same-size
@@ -41,7 +55,8 @@ def dimension_table(doc: dict) -> list[dict]:
     for a, b in itertools.combinations(feats + [dict(g, type="dot_grid", center_part=np.mean(g["centres_part"], 0))
                                                 for g in doc.get("dot_grids", [])], 2):
         d = float(np.hypot(*(np.asarray(a["center_part"]) - np.asarray(b["center_part"]))))
-        rows.append({"name": f"{a['id']}-{b['id']} centre distance", "value": d, "u": None, "kind": "distance",
+        rows.append({"name": f"{a['id']}-{b['id']} centre distance", "value": d, "u": _u_distance(a, b),
+                     "kind": "distance",
                      "members": [a["id"], b["id"]]})
     groups = {}
     for f in feats:
@@ -98,6 +113,8 @@ def write_report(doc: dict, out_dir, *, truth=None, title=None, extra_md: str = 
              f"{np.round(doc['plane']['normal'], 6).tolist()}, fixed angles [tx, ty, tz] = "
              f"{np.round(np.degrees(doc['plane']['fixed_angles_rad']), 4).tolist()} deg, flatness "
              f"{_um(doc['plane']['flatness'])} um over {doc['plane'].get('n_points', '?')} points.")
+    if doc.get("u_scope"):
+        L += ["", f"Uncertainties (u, k = 1): {doc['u_scope']}."]
     sm = doc.get("summary") or {}
     if sm:
         L.append(f"Targeting: {sm.get('iterations_mean', 0):.2f} triangulations and {sm.get('moves_mean', 0):.2f} "

@@ -15,14 +15,19 @@ b + A q, where the columns of A are the unit travel directions (upper-triangular
 Hidden physics (off by default, never told to the solvers):
 - `hidden_distortion`: the lenses distort (true D) but CameraInfo carries D = 0.
 - `tracker_scale_ppm`: the tracker's lengths are scaled by (1 + s) about its origin.
+Stage error motions (ON by default, `stage_error_motions`; never told to the solvers): scale,
+straightness and pitch/yaw/roll with Abbe offset (core/stage_errors.py) move every body point
+and camera as x(b, q) there instead of b + A q.
 """
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from .camera import CameraPose, Intrinsics, rotvec_to_matrix
+from .stage_errors import make_stage_errors
 
 SMR_DIAMETER = 0.0127          # m, 0.5 inch SMR*
 CAMERA_NAMES = ("camera_1", "camera_2", "camera_3")
@@ -54,6 +59,7 @@ class Physics:
     squareness_sd_rad: float = 5e-5
     stage_resolution_m: float = 6.0e-6
     tracker_distance_m: float = 2.4
+    stage_error_motions: bool = True       # stage scale / straightness / angular errors (stage_errors.py)
 
 
 def make_physics(rng, **overrides) -> Physics:
@@ -91,9 +97,12 @@ class CellTruth:
     smr_star_stage: np.ndarray = field(default_factory=lambda: np.zeros(3))  # SMR* centre (fixed)
     nest_axis_stage: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
     probe_body_R_stage: np.ndarray = field(default_factory=lambda: np.eye(3))  # 6-DOF target frame
+    stage_errors: object = None      # stage_errors.StageErrors or None (rigid translation)
 
     def body_point_stage(self, b, q) -> np.ndarray:
         """Stage-frame position (3,) of body point b (3,) with the stage at true position q."""
+        if self.stage_errors is not None:
+            return self.stage_errors.point(self.A_travel, b, q)
         return np.asarray(b, float) + self.A_travel @ np.asarray(q, float)
 
     def probe_point_stage(self, q) -> np.ndarray:
@@ -106,6 +115,9 @@ class CellTruth:
 
     def camera_pose_at(self, j: int, q) -> CameraPose:
         c = self.cameras[j]
+        if self.stage_errors is not None:
+            return CameraPose(self.stage_errors.rotation(q) @ c.pose.R_stage_camera,
+                              self.stage_errors.point(self.A_travel, c.pose.p_stage_centre, q))
         return CameraPose(c.pose.R_stage_camera, c.pose.p_stage_centre + self.A_travel @ np.asarray(q, float))
 
     def tracker_sigma_m(self) -> float:
@@ -166,8 +178,14 @@ def make_cell(rng, physics: Physics | None = None) -> CellTruth:
         az = 2 * np.pi * k / len(CONSTELLATION) + rng.uniform(-0.3, 0.3)
         r = rng.uniform(0.08, 0.14)
         const[name] = np.array([r * np.cos(az), r * np.sin(az), rng.uniform(-0.03, 0.12)])
+    R_probe = _random_rotation(rng)
+    se = None
+    if p.stage_error_motions:
+        # own generator seeded from the cell: the draws above and the caller's stream are unchanged
+        seed = int.from_bytes(hashlib.sha256(A.tobytes() + p_ts.tobytes()).digest()[:8], "little")
+        se = make_stage_errors(seed)
     return CellTruth(p, tuple(cams), A, R_ts, p_ts, const, np.zeros(3),
-                     np.array([0.0, 0.0, -1.0]), _random_rotation(rng))
+                     np.array([0.0, 0.0, -1.0]), R_probe, se)
 
 
 def squareness_truth(A) -> dict:

@@ -297,12 +297,22 @@ def fit_measurement(program: PartProgram, points: list, *, mode="stage", R_track
         xy = g.pop("_xy")
         g.pop("_rc")
         g["centres_part"] = to_part(plane.to_3d(xy))[:, :2].tolist()
-    return {"part": program.part, "mode": mode, "frame": mode,
+    return {"part": program.part, "mode": mode, "frame": mode, "u_scope": U_SCOPE.get(mode, ""),
             "R_frame_part": R_fp.tolist(), "p_frame_part": p_fp.tolist(),
             "plane": {"normal": plane.normal.tolist(), "fixed_angles_rad": fitting.fixed_angles(R_fp).tolist(),
                       "flatness": plane.flatness, "rms": plane.rms, "n_points": plane.n},
             "features": feats_out, "dot_grids": grids_out,
             "pose_fit_residuals_m": np.asarray(resid).tolist()}
+
+
+# What the stated u of each mode includes (written into measurement.json and the report).
+U_SCOPE = {
+    "stage": ("u includes the pixel noise of each located edge point, the calibrated X* pixels and the "
+              "calibrated squareness; it does NOT include the stage's scale, straightness or pitch/yaw/roll "
+              "(Abbe) errors, nor thermal drift: add the stage's stated accuracy over the part's extent"),
+    "tracker": ("u includes the tracker reading noise (calibrated sigma), the calibrated X* in the constellation "
+                "frame and the remaining offset; not the tracker's scale error"),
+}
 
 
 # ------------------------------------------------------------------------------ files
