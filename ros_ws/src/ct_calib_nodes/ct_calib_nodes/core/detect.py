@@ -89,7 +89,7 @@ columns are (col, row).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -127,6 +127,11 @@ FRAME_ERROR_REASONS = (
     "bad_flat_field",
     "bad_stage_reading",
 )
+
+
+# sd [rad] below which a frame's summed structure tensor gives it a dominant background direction
+# (snap_sigma); a holder's band or step in the beam gives a few hundredths of a degree
+FRAME_DIRECTION_SD = np.deg2rad(0.5)
 
 
 class FrameError(ValueError):
@@ -376,6 +381,8 @@ class FrameDetections:
     n_hot_pixels: np.ndarray | None = None
     hot_pixels_px: np.ndarray | None = None
     on_corner: np.ndarray | None = None
+    frame_noise: float = float("nan")
+    frame_direction_rad: float = float("nan")
 
     def __len__(self):
         return self.centre_px.shape[0]
@@ -728,6 +735,7 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
     accepted = _centre_uncertainty(accepted, meas, model, st)                             # 8 uncertainty
     out = _assemble(accepted, rej, meas.n_fits, sdd_px, principal_point_px, trans.shape, hot, "",
                     meas=meas, cand=cand)
+    out = replace(out, frame_noise=float(noise), frame_direction_rad=float(cand.frame_direction))
     clock.lap("uncertainty")
     return out
 
@@ -917,6 +925,7 @@ class _Candidates:
     area: np.ndarray        # (C,)
     shadows: np.ndarray     # (rows, cols) uint8: 1 on compact shadows (grown by 2 px)
     noise: float = 0.0      # pixel noise sd at the open-beam level
+    frame_direction: float = float("nan")   # dominant background direction (snap_sigma) [rad]
 
 
 def _candidates(trans, bg, st, drange, rej):
@@ -1117,9 +1126,19 @@ def _local_backgrounds(trans, bg, cand, st):
         # anisotropy gives the sd of 2 theta.
         s2n = np.asarray(cand.noise, np.float64) ** 2 * np.ones(nc)
         sd_theta = 0.5 * np.sqrt(2.0 * s2n * (jxx + jyy) + 4.0 * s2n ** 2 * n_keep) / np.maximum(root, 1e-30)
-        tf = 0.5 * np.arctan2(2 * jxy.sum(), jxx.sum() - jyy.sum())
-        d_f = np.abs((theta - tf + 0.5 * np.pi) % np.pi - 0.5 * np.pi)
-        theta = np.where(d_f < st.snap_sigma * sd_theta, tf, theta)
+        # the frame's direction counts only when the frame has one: its own sd (the same noise
+        # model over the summed tensor) below FRAME_DIRECTION_SD. A frame without background
+        # structure (no holder in the beam) has a direction drawn by the noise, and snapping every
+        # window to it moved centres by up to 1 sd from one estimate of it to the next (a crop of
+        # the frame against the whole frame, tests/ct_imaging/test_track.py no_tube).
+        jf = np.array([jxx.sum(), jyy.sum(), jxy.sum()])
+        root_f = np.sqrt((jf[0] - jf[1]) ** 2 + 4 * jf[2] ** 2)
+        sd_f = 0.5 * np.sqrt(2.0 * s2n[0] * (jf[0] + jf[1]) + 4.0 * s2n[0] ** 2 * n_keep.sum()) / max(root_f, 1e-30)
+        tf = 0.5 * np.arctan2(2 * jf[2], jf[0] - jf[1]) if sd_f < FRAME_DIRECTION_SD else np.nan
+        cand.frame_direction = float(tf)
+        if np.isfinite(tf):
+            d_f = np.abs((theta - tf + 0.5 * np.pi) % np.pi - 0.5 * np.pi)
+            theta = np.where(d_f < st.snap_sigma * sd_theta, tf, theta)
     q = np.round(theta / (0.5 * np.pi)) * (0.5 * np.pi)
     snapped = np.abs(theta - q) < snap
     theta = np.where(snapped, q, theta)
