@@ -59,11 +59,9 @@ def _b_tangential(c, j):
 
 
 def _b_pp(c, j):
-    m = len(c["n"][j])
-    b = np.zeros((m, 2, 2))
-    b[:, 0, 0] = 1.0
-    b[:, 1, 1] = 1.0
-    return b
+    # CameraInfo's centre off by e px: the undistorted observation moves by -inv(d distort / d n) e / f,
+    # a pure shift (absorbed by the camera rotation) when D = 0, a field-dependent one otherwise
+    return -np.linalg.inv(c["jdist"][j])
 
 
 def _b_focal(c, j):
@@ -89,6 +87,25 @@ def _b_skew(c, j):
     b = np.zeros((len(c["n"][j]), 2, 1))
     b[:, 0, 0] = c["f"][j] * c["n"][j][:, 1]
     return b
+
+
+def _distort_n(D, n):
+    k1, k2, p1, p2, k3 = D
+    x, y = n[:, 0], n[:, 1]
+    r2 = x * x + y * y
+    rad = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    return np.column_stack([x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+                            y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y])
+
+
+def _distort_jacobian(D, n, h=1e-7):
+    """(m, 2, 2) d distorted / d undistorted normalised coordinates under CameraInfo's D."""
+    out = np.zeros((len(n), 2, 2))
+    for k in range(2):
+        e = np.zeros(2)
+        e[k] = h
+        out[:, :, k] = (_distort_n(D, n + e) - _distort_n(D, n - e)) / (2 * h)
+    return out
 
 
 CATALOGUE = (
@@ -127,6 +144,7 @@ CATALOGUE = (
               ("vx", "vy", "vz"), ("m", "m", "m"), "um over the session (rms over cameras)",
               "a longer session, or repeat stations at its start and end", _b_pos_drift, 1e-3),
 )
+MIN_STATIONS = 15
 CATALOGUE_BY_ID = {t.id: t for t in CATALOGUE}
 DISPLAY = {"lens_radial_k1": 1.0, "lens_radial_k2": 1.0, "lens_tangential": 1.0, "principal_point_error": 1.0,
            "focal_length_error": 1.0, "pixel_aspect_error": 1.0, "sensor_skew": 1.0,
@@ -149,10 +167,14 @@ def build(result: CalibrationResult, camera_info: dict, n_folds: int = 5):
         e = np.zeros(3)
         e[k] = 1e-7
         dA.append(-(dq @ ((travel_matrix(sq + e) - travel_matrix(sq - e)) / 2e-7).T))   # (N, 3)
+    if N < MIN_STATIONS:
+        raise ValueError(f"{N} settled stations: too few for a discrepancy verdict (the noise floor and the "
+                         f"held-out folds need >= {MIN_STATIONS}; 6 pose parameters per camera leave too few "
+                         "degrees of freedom); record the grid acquisition (grid_pattern(), 33 stations)")
     n_pose = 6 * len(cams)
     p0 = n_pose + 3
     rows_r, rows_j, sig, comp, grp, cam_of, st_of = [], [], [], [], [], [], []
-    ctx = {"n": [], "f": [], "t": [], "jrot": [], "jpos": [], "idx": []}
+    ctx = {"jdist": [], "n": [], "f": [], "t": [], "jrot": [], "jpos": [], "idx": []}
     tnorm = np.linspace(-0.5, 0.5, N) if N > 1 else np.zeros(1)
     row = 0
     for j, c in enumerate(cams):
@@ -184,6 +206,7 @@ def build(result: CalibrationResult, camera_info: dict, n_folds: int = 5):
                 cam_of.append(j)
                 st_of.append(i)
         ctx["n"].append(n)
+        ctx["jdist"].append(_distort_jacobian(np.asarray(camera_info[c].D, float), n))
         ctx["f"].append(f)
         ctx["t"].append(tnorm[ok])
         ctx["jrot"].append(jr)
