@@ -26,6 +26,7 @@ setup(
         "picms_calibrate_offline = picms_nodes.offline:main",
         "picms_demo = picms_nodes.nodes.picms_demo:main",
         "picms_measure_offline = picms_nodes.measure_offline:main",
+        "picms_discrepancy = picms_nodes.discrepancy_cli:main",
         "picms_measure_demo = picms_nodes.measure_demo:main",
         "picms_targeting = picms_nodes.nodes.picms_targeting:main",
         "picms_measurement = picms_nodes.nodes.picms_measurement:main",
