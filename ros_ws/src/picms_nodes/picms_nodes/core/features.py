@@ -206,19 +206,22 @@ def fit_strip(img, view: View, target: EdgeTarget, P, *, search_px=10.0, half_le
         wb = x[5] if band_m is None else w_fix
         return x[3] + x[4] * (ndtr(d / x[2]) - ndtr((d - wb) / x[2]))
 
+    # level bounds in DN of an 8-bit frame, scaled up for mono16 (or any frame brighter than 8 bits:
+    # the bounds must contain the levels, else every fit of a mono16 frame fails)
+    g = max(1.0, hi / 250.0)
     if bright:
         x0_ = np.array([s_c, 0.0, 1.5, lo, hi])
-        lb = [s_c - 6, -0.5, 0.25, -50, -50]
-        ub = [s_c + 6, 0.5, 10.0, 300, 300]
+        lb = [s_c - 6, -0.5, 0.25, -50 * g, -50 * g]
+        ub = [s_c + 6, 0.5, 10.0, 300 * g, 300 * g]
     elif band_m is None:
         x0_ = np.array([s_c, 0.0, 1.5, lo, hi - lo, 2.5])
-        lb = [s_c - 6, -0.5, 0.25, -50, 0.0, 0.2]
-        ub = [s_c + 6, 0.5, 10.0, 300, 400, 20.0]
+        lb = [s_c - 6, -0.5, 0.25, -50 * g, 0.0, 0.2]
+        ub = [s_c + 6, 0.5, 10.0, 300 * g, 400 * g, 20.0]
     else:
         w_fix = band_m * px_per_m
         x0_ = np.array([s_c, 0.0, 1.5, lo, hi - lo])
-        lb = [s_c - 6, -0.5, 0.25, -50, 0.0]
-        ub = [s_c + 6, 0.5, 10.0, 300, 1000]
+        lb = [s_c - 6, -0.5, 0.25, -50 * g, 0.0]
+        ub = [s_c + 6, 0.5, 10.0, 300 * g, 1000 * g]
     try:
         sol = least_squares(lambda x: model(x) - I, x0_, bounds=(lb, ub), x_scale="jac")
     except (ValueError, np.linalg.LinAlgError) as e:
