@@ -66,7 +66,7 @@ class Cam:
         return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
-def make_cameras(rng):
+def make_cameras(rng, lens="mild"):
     """Three cameras 120 deg apart, ~35 deg from the vertical, ~180 mm from X* (the paper's layout)."""
     cams = {}
     for j in range(3):
@@ -80,8 +80,10 @@ def make_cameras(rng):
         x = np.cross(y, z)
         R = np.column_stack([x, y, z]) @ _rot("z", rng.uniform(-0.02, 0.02))   # roll about the axis
         f = 7250.0 * (1 + rng.uniform(-0.03, 0.03))
-        K = [[f, 0, 640 + rng.uniform(-8, 8)], [0, f, 512 + rng.uniform(-8, 8)], [0, 0, 1]]
-        D = [rng.uniform(-0.08, 0.08), 0.0, 0.0, 0.0, 0.0]
+        fy = f if lens == "mild" else f * (1 + rng.uniform(-0.01, 0.01))     # "strong": non-square pixels
+        K = [[f, 0, 640 + rng.uniform(-8, 8)], [0, fy, 512 + rng.uniform(-8, 8)], [0, 0, 1]]
+        D = [rng.uniform(-0.08, 0.08), 0.0, 0.0, 0.0, 0.0] if lens == "mild" else \
+            [rng.uniform(-0.3, 0.3), rng.uniform(-0.5, 0.5), rng.uniform(-2e-3, 2e-3), rng.uniform(-2e-3, 2e-3), 0.1]
         cams[f"camera_{j + 1}"] = Cam(K, D, 1280, 1024, R, C)
     return cams
 
@@ -166,7 +168,7 @@ def render_crop(cam, xstar, R_sp, p_sp, feats, scale, centre_px, rng, *, blur_px
     return np.clip(np.round(img), 0, 255).astype(np.uint8), (x0, y0)
 
 
-def generate(out_dir, seed, *, blur_px=None, only=None, ss=5, bits=8):
+def generate(out_dir, seed, *, blur_px=None, only=None, ss=5, bits=8, lens="mild", bg=None):
     """Write measurement.json + measurement.crops.npz; return (path, truth dict).
 
     only: feature ids to keep (default all); ss: supersampling per pixel axis; bits: 8 (mono8)
@@ -174,9 +176,10 @@ def generate(out_dir, seed, *, blur_px=None, only=None, ss=5, bits=8):
     rng = np.random.default_rng(seed)
     out = pathlib.Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    cams = make_cameras(rng)
+    cams = make_cameras(rng, lens)
     blur = blur_px if blur_px is not None else rng.uniform(0.7, 1.3)
-    bg, dark, read_sd = rng.uniform(180, 230), rng.uniform(20, 50), rng.uniform(1.0, 2.5)
+    bg_, dark, read_sd = rng.uniform(180, 230), rng.uniform(20, 50), rng.uniform(1.0, 2.5)
+    bg = bg_ if bg is None else bg        # bg > 255: the back-light saturates the 8-bit frame
     # true part: tilted, rotated, offset; made 200 ppm off nominal (a true size is not the drawing)
     tilt = rng.normal(0, 0.02, 2)
     R_sp = _rot("z", rng.uniform(-0.05, 0.05)) @ _rot("y", tilt[1]) @ _rot("x", tilt[0])
@@ -290,11 +293,13 @@ if __name__ == "__main__":
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4])
     ap.add_argument("--blur", type=float, default=None, help="PSF sigma px (default: random 0.7-1.3)")
     ap.add_argument("--bits", type=int, default=8, choices=(8, 16))
+    ap.add_argument("--lens", default="mild", choices=("mild", "strong"))
+    ap.add_argument("--bg", type=float, default=None, help="back-light level DN (> 255 saturates)")
     a = ap.parse_args()
     res = []
     with tempfile.TemporaryDirectory() as tmp:
         for s in a.seeds:
-            r = check(pathlib.Path(tmp) / f"s{s}", s, blur_px=a.blur, bits=a.bits)
+            r = check(pathlib.Path(tmp) / f"s{s}", s, blur_px=a.blur, bits=a.bits, lens=a.lens, bg=a.bg)
             res.append(r)
             print(json.dumps(r), flush=True)
     z = [f["err_um"] / f["u_um"] for r in res for f in r.get("features", {}).values()]

@@ -16,10 +16,17 @@ import picms_indep_gen as gen
 from picms_nodes import measure_offline
 
 
-@pytest.mark.parametrize("seed, only, bits", [(11, ("sq5", "c2"), 8), (12, ("c2",), 16)])
-def test_independent_record_sizes_and_plane(tmp_path, seed, only, bits):
-    """mono8, and mono16 (INTERFACES allows it; every edge fit failed on it before round 18)."""
-    path, truth = gen.generate(tmp_path, seed, only=only, ss=3, bits=bits)
+@pytest.mark.parametrize("seed, only, bits, bg, bias_um", [
+    (11, ("sq5", "c2"), 8, None, 0.0),
+    (12, ("c2",), 16, None, 0.0),
+    (13, ("sq5",), 8, 300.0, 3.0),
+])
+def test_independent_record_sizes_and_plane(tmp_path, seed, only, bits, bg, bias_um):
+    """mono8; mono16 (INTERFACES allows it; every edge fit failed on it before round 18); a
+    back-light saturating the 8-bit frame (bg 300 DN clipped at 255: sizes were 12-17 um small
+    before round 18; with the saturated pixels censored a bias of -1.8 um mean (z rms 2.2, 4
+    seeds x 4 features) remains, allowed for by bias_um)."""
+    path, truth = gen.generate(tmp_path, seed, only=only, ss=3, bits=bits, bg=bg)
     out = tmp_path / "reloc.json"
     assert measure_offline.main([str(path), "--out", str(out), "--relocate", "--history", "none"]) == 0
     d = json.loads(out.read_text())
@@ -29,8 +36,8 @@ def test_independent_record_sizes_and_plane(tmp_path, seed, only, bits):
         f = feats[fid]
         err = f["size"] - true_size
         # stated u ~0.2-0.4 um here; 4 u (the 32 sizes of 8 seeds gave z rms 0.99)
-        assert abs(err) < 4 * f["u_size"], (fid, err, f["u_size"])
-        assert 0.05e-6 < f["u_size"] < 1.0e-6, (fid, f["u_size"])
+        assert abs(err) < 4 * f["u_size"] + bias_um * 1e-6, (fid, err, f["u_size"])
+        assert 0.05e-6 < f["u_size"] < 1.5e-6, (fid, f["u_size"])
     # plane normal vs truth: slope u from the points' height variances (weighted LS of a plane)
     n_true = np.asarray(truth["normal"])
     P = np.array([p["p_stage"] for p in d["points"]])
