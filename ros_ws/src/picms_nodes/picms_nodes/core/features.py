@@ -195,9 +195,14 @@ def fit_strip(img, view: View, target: EdgeTarget, P, *, search_px=10.0, half_le
         k = min(cand, key=lambda k: abs(bins[k]))
         s_c = bins[k] - 1.0
         win = (sc > s_c - 6) & (sc < s_c + 8)
+    # saturated pixels (the frame's full scale) only say "at least this bright": left out of the
+    # fit, so a clipped back-light does not pull the fitted step's mid-level (and the edge) down
+    sat = np.iinfo(img.dtype).max if np.issubdtype(img.dtype, np.integer) else np.inf
+    clipped = bool(np.any(I[win] >= sat))
+    win &= I < sat
     s, u, I = s[win], u[win], I[win]
     if len(I) < 12:
-        return StripFit(False, f"{view.name}: too few pixels near the edge")
+        return StripFit(False, f"{view.name}: too few unsaturated pixels near the edge")
 
     def model(x):
         d = s - x[0] - x[1] * u + kappa * u * u / 2
@@ -206,21 +211,33 @@ def fit_strip(img, view: View, target: EdgeTarget, P, *, search_px=10.0, half_le
         wb = x[5] if band_m is None else w_fix
         return x[3] + x[4] * (ndtr(d / x[2]) - ndtr((d - wb) / x[2]))
 
+    # level bounds in DN of an 8-bit frame, scaled up for mono16 (or any frame brighter than 8 bits:
+    # the bounds must contain the levels, else every fit of a mono16 frame fails)
+    g = max(1.0, hi / 250.0) * (3.0 if clipped else 1.0)   # clipped: the true level is above full scale
     if bright:
         x0_ = np.array([s_c, 0.0, 1.5, lo, hi])
-        lb = [s_c - 6, -0.5, 0.25, -50, -50]
-        ub = [s_c + 6, 0.5, 10.0, 300, 300]
+        lb = [s_c - 6, -0.5, 0.25, -50 * g, -50 * g]
+        ub = [s_c + 6, 0.5, 10.0, 300 * g, 300 * g]
     elif band_m is None:
         x0_ = np.array([s_c, 0.0, 1.5, lo, hi - lo, 2.5])
-        lb = [s_c - 6, -0.5, 0.25, -50, 0.0, 0.2]
-        ub = [s_c + 6, 0.5, 10.0, 300, 400, 20.0]
+        lb = [s_c - 6, -0.5, 0.25, -50 * g, 0.0, 0.2]
+        ub = [s_c + 6, 0.5, 10.0, 300 * g, 400 * g, 20.0]
     else:
         w_fix = band_m * px_per_m
         x0_ = np.array([s_c, 0.0, 1.5, lo, hi - lo])
-        lb = [s_c - 6, -0.5, 0.25, -50, 0.0]
-        ub = [s_c + 6, 0.5, 10.0, 300, 1000]
+        lb = [s_c - 6, -0.5, 0.25, -50 * g, 0.0]
+        ub = [s_c + 6, 0.5, 10.0, 300 * g, 1000 * g]
     try:
         sol = least_squares(lambda x: model(x) - I, x0_, bounds=(lb, ub), x_scale="jac")
+        if clipped:
+            # dropping the saturated pixels by their observed value keeps those that noise pushed
+            # below full scale (a bias toward dark near the top): keep by the fitted model's value
+            # instead (3 sd below full scale), which the noise does not select, and refit
+            keep = model(sol.x) < sat - 3.0 * float(np.sqrt(np.mean(sol.fun ** 2)))
+            if keep.sum() < 12:
+                return StripFit(False, f"{view.name}: too few pixels below saturation near the edge")
+            s, u, I = s[keep], u[keep], I[keep]
+            sol = least_squares(lambda x: model(x) - I, sol.x, bounds=(lb, ub), x_scale="jac")
     except (ValueError, np.linalg.LinAlgError) as e:
         return StripFit(False, f"{view.name}: edge fit failed ({e})")
     dof = max(len(I) - len(x0_), 1)
