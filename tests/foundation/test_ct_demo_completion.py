@@ -32,3 +32,11 @@ def test_without_final_field_quiet_time_decides():
     assert not campaign_over(maps, QUIET, 6, now=5.0)
     assert campaign_over(maps, QUIET, 6, now=7.0)
     assert not campaign_over(maps, dict(QUIET, single_after=False), 6, now=7.0)
+
+
+def test_demo_gives_the_recorder_longer_than_its_drain():
+    """A recorder SIGKILLed while it drains leaves a file without its summary (seen under load:
+    its own 1 Hz diagnostics kept the drain going past the demo's 20 s stop timeout)."""
+    from ct_calib_nodes.nodes import ct_demo, mcap_recorder
+
+    assert ct_demo.RECORDER_STOP_S > mcap_recorder.DRAIN_MAX_S + 5.0

@@ -57,7 +57,11 @@ def test_offline_command_refuses_small_recording_and_bad_path(tmp_path, sessions
 def grid_session():
     # one cell rendered once on the grid acquisition (~15 s)
     rng = np.random.default_rng(31)
-    truth = cell.make_cell(rng, cell.make_physics(rng, distortion_k1=-0.3))
+    # a rigid stage: the simulator's stage error motions (on by default since round 18) are not in
+    # the calibration model nor in the engine's catalogue, and on this grid the engine names them
+    # as a pixel aspect-ratio error (9e-5 at 15 sigma): a clean control here means only modelled
+    # physics. Stage terms for the catalogue are future work (see picms_discrepancy.md).
+    truth = cell.make_cell(rng, cell.make_physics(rng, distortion_k1=-0.3, stage_error_motions=False))
     rec, _ = campaign.simulate_session(truth, rng, pattern=pd.grid_pattern(), dwell_s=1.2, mid_move_frames=0)
     return truth, rec
 

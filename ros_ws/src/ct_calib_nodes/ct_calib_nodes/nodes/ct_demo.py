@@ -38,6 +38,11 @@ def _start(argv, log_path):
     return subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, start_new_session=True), log
 
 
+# the recorder drains what DDS still holds for up to mcap_recorder.DRAIN_MAX_S (30 s) before it
+# closes the file: give it longer than that before SIGKILL (a killed recorder leaves no summary)
+RECORDER_STOP_S = 45.0
+
+
 def _stop(proc, timeout=20.0):
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
@@ -164,7 +169,7 @@ def main(argv=None):
                       f"error map {0 if em is None else len(em.srd_reported_m)}/{args.positions} positions")
     finally:
         for name in ("sim", "detector", "geometry", "motion", "recorder"):
-            _stop(procs[name][0])
+            _stop(procs[name][0], timeout=RECORDER_STOP_S if name == "recorder" else 20.0)
             procs[name][1].close()
         node.destroy_node()
         rclpy.try_shutdown()

@@ -226,6 +226,11 @@ def main(args=None):
     try:
         while not stop:
             executor.spin_once(timeout_sec=0.1)
+        # the recorder's own diagnostics (1 Hz, recorded with everything else) would keep resetting
+        # the quiet time: stop them before draining
+        diag = getattr(node, "diagnostics", None)
+        if diag is not None and getattr(diag, "timer", None) is not None:
+            diag.timer.cancel()
         count, t_last, t0 = node.writer.message_count, time.monotonic(), time.monotonic()
         while time.monotonic() - t_last < DRAIN_QUIET_S and time.monotonic() - t0 < DRAIN_MAX_S:
             executor.spin_once(timeout_sec=0.05)
