@@ -132,8 +132,11 @@ class RateMeter:
         self.total = 0
 
     def tick(self):
-        self.t.append(time.monotonic())
+        now = time.monotonic()
+        self.t.append(now)
         self.total += 1
+        while now - self.t[0] > self.window_s:      # bounded even when rate() is never asked
+            self.t.popleft()
 
     def rate(self) -> float:
         now = time.monotonic()
