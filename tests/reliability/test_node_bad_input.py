@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from builtin_interfaces.msg import Time
 from metro_msgs.msg import CtGeometry, SphereObservation, SphereObservationArray
+from rclpy.duration import Duration
 from sensor_msgs.msg import Image, JointState
 
 from ct_calib_nodes.nodes.runner import QOS_LATCHED, QOS_RELIABLE_STREAM
@@ -126,7 +127,10 @@ def test_nodes_survive_malformed_messages(tmp_path, start_node, ros_node):
         for bad in _bad_geometries().values():         # latched, depth 1: one at a time
             pub_g.publish(bad)
             sent["geometry"] += 1
-            ros_node.spin_until(lambda: False, timeout=0.15)
+            # a keep-last-1 writer replaces a sample not yet acknowledged (one was lost this way in a
+            # CI run): wait for the readers' acknowledgement, then give the node time to take it
+            pub_g.wait_for_all_acked(Duration(seconds=5))
+            ros_node.spin_until(lambda: False, timeout=0.3)
         ros_node.spin_until(lambda: False, timeout=0.3)
     ros_node.spin_until(lambda: False, timeout=1.5)
     for tp, _tn, msg, _lt in good:                       # then the good campaign (4 frames, 1 position)
