@@ -4,14 +4,8 @@
 # PiCMS cell: calibration, measurement of the targets part program, report (picms_measure_demo).
 # Options go to ct_demo, e.g.  bash scripts/demo.sh --positions 19 --projections 36
 set -euo pipefail
-ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-bash "$ROOT/scripts/setup.sh"
 # shellcheck disable=SC1091
-source "$ROOT/scripts/env.sh"
-export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
-export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( ( $$ + RANDOM ) % 100 + 1 ))}"
-export MPLBACKEND=Agg
-cd "$ROOT"
+source "$(dirname "${BASH_SOURCE[0]}")/prepare.sh"
 rc=0
 "$ROOT/ros_ws/install/ct_calib_nodes/lib/ct_calib_nodes/ct_demo" --out "$ROOT/out" --bags "$ROOT/bags" "$@" || rc=$?
 # The PiCMS cell: calibrate a simulated cell, measure the chrome-targets part program, write

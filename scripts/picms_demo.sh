@@ -4,11 +4,6 @@
 # the recording; prints both against the simulator's truth. Options go to picms_demo, e.g.
 #   bash scripts/picms_demo.sh --seed 3 --dwell 3
 set -euo pipefail
-ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-bash "$ROOT/scripts/setup.sh"
 # shellcheck disable=SC1091
-source "$ROOT/scripts/env.sh"
-export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
-export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( ( $$ + RANDOM ) % 100 + 1 ))}"
-cd "$ROOT"
+source "$(dirname "${BASH_SOURCE[0]}")/prepare.sh"
 exec "$ROOT/ros_ws/install/picms_nodes/lib/picms_nodes/picms_demo" --out "$ROOT/out/picms" --bags "$ROOT/bags" "$@"

@@ -5,17 +5,9 @@
 # module fixtures are built once; each worker has its own DDS domain, see tests/conftest.py).
 # TEST_WORKERS=0 runs them in this process.
 set -euo pipefail
-ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-bash "$ROOT/scripts/setup.sh"
 # shellcheck disable=SC1091
-source "$ROOT/scripts/env.sh"
-# DDS isolation: discovery stays on this machine, and each run gets its own domain id so
-# concurrent runs (or a neighbour's nodes) never see each other's traffic.
-export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
-export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( ( $$ + RANDOM ) % 100 + 1 ))}"
-export MPLBACKEND=Agg
+source "$(dirname "${BASH_SOURCE[0]}")/prepare.sh"
 echo "[test] ROS_DOMAIN_ID=$ROS_DOMAIN_ID ROS_AUTOMATIC_DISCOVERY_RANGE=$ROS_AUTOMATIC_DISCOVERY_RANGE"
-cd "$ROOT"
 workers="${TEST_WORKERS:-2}"
 if [ "$workers" = 0 ]; then
   exec python -m pytest "$@"
