@@ -22,19 +22,7 @@ import cv2
 import numpy as np
 
 from picms_nodes.core import camera, cell, targeting
-
-
-def truth_probe(truth):
-    names = [c.name for c in truth.cameras]
-    return targeting.Probe(
-        camera_names=names, intrinsics={c.name: c.true_intrinsics for c in truth.cameras},
-        R_stage_camera={c.name: c.pose.R_stage_camera for c in truth.cameras},
-        p_stage_centre={c.name: c.pose.p_stage_centre for c in truth.cameras},
-        u_rotation_rad={n: np.zeros(3) for n in names}, u_p_stage_centre={n: np.zeros(3) for n in names},
-        xstar_px={c.name: camera.project(c.pose, c.true_intrinsics, np.zeros(3))[0] for c in truth.cameras},
-        u_xstar_px={n: np.full(2, 1e-4) for n in names}, squareness=np.zeros(3), u_squareness=np.zeros(3),
-        p_constellation=np.zeros(3), cov_p_constellation=np.zeros((3, 3)), constellation={},
-        R_tracker_stage=np.eye(3))
+from picms_nodes.measure_sim import truth_probe
 
 
 def main():
@@ -47,7 +35,7 @@ def main():
     for k in range(n_cells):
         rng = np.random.default_rng(700 + k)
         truth = cell.make_cell(rng, cell.make_physics(rng))
-        probe = truth_probe(truth)
+        probe = truth_probe(truth, sigma_px=1e-4)
         x0 = probe.xstar_body
         names = probe.camera_names
         P = rng.uniform(-1e-3, 1e-3, (n, 3))

@@ -11,21 +11,7 @@ import pytest
 from picms_nodes.core import camera, cell, cellio, scenes, targeting
 from picms_nodes.core.instruments import StageSim
 from picms_nodes.io.files import calibration_dict
-
-
-def truth_probe(truth, sigma_px=0.05):
-    """A Probe made from a cell's TRUE geometry (for triangulation tests without calibration)."""
-    names = [c.name for c in truth.cameras]
-    return targeting.Probe(
-        camera_names=names, intrinsics={c.name: c.true_intrinsics for c in truth.cameras},
-        R_stage_camera={c.name: c.pose.R_stage_camera for c in truth.cameras},
-        p_stage_centre={c.name: c.pose.p_stage_centre for c in truth.cameras},
-        u_rotation_rad={n: np.zeros(3) for n in names}, u_p_stage_centre={n: np.zeros(3) for n in names},
-        xstar_px={c.name: camera.project(c.pose, c.true_intrinsics, np.zeros(3))[0] for c in truth.cameras},
-        u_xstar_px={n: np.full(2, sigma_px) for n in names},
-        squareness=np.array(list(cell.squareness_truth(truth.A_travel).values())), u_squareness=np.zeros(3),
-        p_constellation=np.zeros(3), cov_p_constellation=np.zeros((3, 3)), constellation={},
-        R_tracker_stage=truth.R_tracker_stage)
+from picms_nodes.measure_sim import truth_probe
 
 
 def probe_of(session):

@@ -14,7 +14,7 @@ import pathlib
 
 import numpy as np
 
-from .core import campaign, cell, cellio, scenes, targeting
+from .core import camera, campaign, cell, cellio, scenes, targeting
 from .core.pipeline import calibrate_recording
 from .io.files import calibration_dict
 
@@ -71,3 +71,20 @@ def placed_part(scene: str, rng, *, offset_m=2e-4, tilt_rad=0.03):
     tilt = rng.uniform(-tilt_rad, tilt_rad, 2)
     rot = float(rng.uniform(-np.pi, np.pi))
     return scenes.make_part(scene, pos, tilt, rot)
+
+
+def truth_probe(truth, sigma_px: float = 0.05) -> targeting.Probe:
+    """A Probe made from a simulated cell's TRUE geometry (cameras, stage squareness, tracker
+    orientation), with image points of stated sd `sigma_px`: for triangulation tests and benchmarks
+    that leave the calibration out. Never for a measurement (it is truth)."""
+    names = [c.name for c in truth.cameras]
+    return targeting.Probe(
+        camera_names=names, intrinsics={c.name: c.true_intrinsics for c in truth.cameras},
+        R_stage_camera={c.name: c.pose.R_stage_camera for c in truth.cameras},
+        p_stage_centre={c.name: c.pose.p_stage_centre for c in truth.cameras},
+        u_rotation_rad={n: np.zeros(3) for n in names}, u_p_stage_centre={n: np.zeros(3) for n in names},
+        xstar_px={c.name: camera.project(c.pose, c.true_intrinsics, np.zeros(3))[0] for c in truth.cameras},
+        u_xstar_px={n: np.full(2, sigma_px) for n in names},
+        squareness=np.array(list(cell.squareness_truth(truth.A_travel).values())), u_squareness=np.zeros(3),
+        p_constellation=np.zeros(3), cov_p_constellation=np.zeros((3, 3)), constellation={},
+        R_tracker_stage=truth.R_tracker_stage)
