@@ -1,7 +1,7 @@
 """The one atomic writer (ct_calib_nodes.io.atomic) behind every result file: a write interrupted
 by an exception leaves the old file byte for byte and no temporary file behind; each of the four
 former copies (CT results JSON, Pixel Probe calibration YAML, measurement JSON/NPZ, journal renewal)
-now goes through it."""
+now goes through it; `staged_outputs` moves a command's set of output files into place all or nothing."""
 
 import json
 
@@ -72,3 +72,26 @@ def test_journal_renewal_replaces_atomically(tmp_path, monkeypatch):
     j.close()
     assert len((tmp_path / "c.journal").read_bytes()) < len(before)
     assert [x.name for x in tmp_path.iterdir()] == ["c.journal"]
+
+
+def test_staged_outputs_all_or_nothing(tmp_path):
+    """A command's set of outputs (report, JSON, plots, a folder) moves into place only when all were
+    written: a failure half-way leaves the previous run's files as they were and no staging folder."""
+    out = tmp_path / "out"
+    with atomic.staged_outputs(out) as tmp:
+        (tmp / "report.md").write_text("run 1")
+        (tmp / "plots").mkdir()
+        (tmp / "plots" / "a.png").write_bytes(b"1")
+    assert (out / "report.md").read_text() == "run 1" and (out / "plots" / "a.png").read_bytes() == b"1"
+    with pytest.raises(Boom):
+        with atomic.staged_outputs(out) as tmp:
+            (tmp / "report.md").write_text("run 2, partial")
+            raise Boom("plotting failed")
+    assert (out / "report.md").read_text() == "run 1"
+    with atomic.staged_outputs(out) as tmp:      # a complete second run replaces files and folders
+        (tmp / "report.md").write_text("run 3")
+        (tmp / "plots").mkdir()
+        (tmp / "plots" / "b.png").write_bytes(b"3")
+    assert (out / "report.md").read_text() == "run 3"
+    assert sorted(p.name for p in (out / "plots").iterdir()) == ["b.png"]
+    assert sorted(p.name for p in out.iterdir()) == ["plots", "report.md"]

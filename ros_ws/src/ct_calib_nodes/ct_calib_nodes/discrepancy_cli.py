@@ -19,9 +19,7 @@ from __future__ import annotations
 
 import argparse
 import pathlib
-import shutil
 import sys
-import tempfile
 import time
 
 import numpy as np
@@ -203,6 +201,7 @@ def write_report(out: dict, tmp: pathlib.Path, plots: list, recording) -> None:
 def main(argv=None) -> int:
     from ct_calib_nodes.core import ct_discrepancy  # noqa: PLC0415
     from ct_calib_nodes.io import ct_files  # noqa: PLC0415
+    from ct_calib_nodes.io.atomic import staged_outputs  # noqa: PLC0415
     from ct_calib_nodes.io.results import write_json_atomic  # noqa: PLC0415
     from ct_calib_nodes.offline import load_recording_files, solve_recording  # noqa: PLC0415
 
@@ -274,18 +273,12 @@ def main(argv=None) -> int:
                        "stage_positions": t3b - t3,
                        "replay_cpu_s": replay_cpu, "workers": workers}
     out_dir = pathlib.Path(args.out) if args.out else rec.parent / f"{rec.stem}_discrepancy"
-    out_dir.mkdir(parents=True, exist_ok=True)
-    tmp = pathlib.Path(tempfile.mkdtemp(prefix=".partial_", dir=out_dir))
-    try:
+    with staged_outputs(out_dir) as tmp:
         plots = [] if args.no_plots else _plots(out, tmp, instrument.detector)
         arrays = out.pop("_arrays")
         write_json_atomic(tmp / "discrepancy.json", out)
         out["_arrays"] = arrays
         write_report(out, tmp, plots, rec)
-        for item in sorted(tmp.iterdir()):
-            item.replace(out_dir / item.name)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     say(out["verdict"])
     say(f"written: {out_dir / 'discrepancy.json'}, {out_dir / 'report.md'}")
     return 0

@@ -32,9 +32,7 @@ from __future__ import annotations
 import argparse
 import os
 import pathlib
-import shutil
 import sys
-import tempfile
 import time
 from dataclasses import dataclass, field
 
@@ -524,13 +522,12 @@ def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files
                   namespace: str = "/"):
     """Write everything into a temporary directory, then move each file into out_dir."""
     from ct_calib_nodes.core.ct_pipeline import campaign_residuals  # noqa: PLC0415
+    from ct_calib_nodes.io.atomic import staged_outputs  # noqa: PLC0415
     from ct_calib_nodes.io.campaign_outputs import write_report_and_export  # noqa: PLC0415
     from ct_calib_nodes.io.results import write_json_atomic  # noqa: PLC0415
 
     out_dir = pathlib.Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    tmp = pathlib.Path(tempfile.mkdtemp(prefix=".partial_", dir=out_dir))
-    try:
+    with staged_outputs(out_dir) as tmp:
         write_json_atomic(tmp / "results.json", _result_dict(res, instrument, ref, recording, files))
         _write_result_mcap(tmp / "results.mcap", res, instrument, namespace)
         if "multi" in res.maps:
@@ -555,13 +552,6 @@ def write_outputs(out_dir, res: OfflineResult, instrument, ref, recording, files
                                          f"{res.acc.srd_tolerance_m:g} m)",
                       "repeatability (revisits, multi, travel)": repeatability_text(
                           res.repeatability.get("multi", {}).get("travel", []))})
-        for item in sorted(tmp.iterdir()):
-            dest = out_dir / item.name
-            if dest.is_dir():
-                shutil.rmtree(dest)
-            item.replace(dest)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return out_dir
 
 

@@ -14,9 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
-import shutil
 import sys
-import tempfile
 
 import numpy as np
 
@@ -74,6 +72,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out")
     ap.add_argument("--max-terms", type=int, default=3)
     a = ap.parse_args(argv)
+    from ct_calib_nodes.io.atomic import staged_outputs  # noqa: PLC0415
+
     from .core.calibrate import CalibrationError  # noqa: PLC0415
     from .core.picms_discrepancy import run  # noqa: PLC0415
     from .core.pipeline import calibrate_recording  # noqa: PLC0415
@@ -99,15 +99,11 @@ def main(argv=None) -> int:
         print(f"picms_discrepancy: no calibration to analyse: {exc}", file=sys.stderr)
         return 1
     dest = pathlib.Path(a.out) if a.out else rec_path.with_name(rec_path.name.rstrip("/") + "_discrepancy")
-    dest.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=dest) as td:
-        tmp = pathlib.Path(td)
-        files = _plots(out, tmp)
+    with staged_outputs(dest) as tmp:
+        _plots(out, tmp)
         (tmp / "report.md").write_text(_report(out))
         js = {k: v for k, v in out.items() if k != "_arrays"}
         (tmp / "discrepancy.json").write_text(json.dumps(js, indent=1, default=float))
-        for f in files + ["report.md", "discrepancy.json"]:
-            shutil.move(str(tmp / f), str(dest / f))
     print(out["verdict"])
     print(f"written to {dest}")
     return 0

@@ -6,11 +6,17 @@ directory (a rename is atomic only within one file system), fsyncs it, renames i
 fsyncs the directory so the rename itself survives a power cut. If ``write`` raises (or anything up
 to the rename fails) the temporary file is removed and ``path`` keeps its old content: a partial
 result never replaces a good one.
+
+``staged_outputs(out_dir)`` does the same for a set of result files (a command's report, plots and
+JSON): they are written into a hidden temporary directory inside ``out_dir`` and moved into place
+only when every one was written; if anything fails, ``out_dir`` keeps the previous run's files.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import pathlib
+import shutil
 import tempfile
 
 
@@ -60,4 +66,24 @@ def write_bytes_atomic(path, data: bytes) -> pathlib.Path:
     return replace_atomically(path, lambda tmp: pathlib.Path(tmp).write_bytes(data))
 
 
-__all__ = ["replace_atomically", "write_text_atomic", "write_bytes_atomic"]
+@contextlib.contextmanager
+def staged_outputs(out_dir):
+    """Yield a fresh temporary directory inside ``out_dir`` (created if needed); when the block ends
+    without an exception, move each item written there into ``out_dir`` (replacing a file or
+    directory of the same name), then remove the temporary directory in every case."""
+    out_dir = pathlib.Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix=".partial_", dir=out_dir))
+    try:
+        yield tmp
+        for item in sorted(tmp.iterdir()):
+            dest = out_dir / item.name
+            if dest.is_dir() and not dest.is_symlink():
+                shutil.rmtree(dest)
+            item.replace(dest)
+        _fsync_dir(out_dir)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+__all__ = ["replace_atomically", "write_text_atomic", "write_bytes_atomic", "staged_outputs"]

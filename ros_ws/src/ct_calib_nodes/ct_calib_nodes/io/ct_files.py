@@ -11,6 +11,7 @@ import yaml
 
 from ct_calib_nodes.core.geometry import DetectorSpec
 from ct_calib_nodes.core.phantom import ReferenceObject
+from ct_calib_nodes.io.atomic import write_text_atomic
 
 CONFIG_DIR = pathlib.Path(__file__).resolve().parent.parent.parent / "config"
 
@@ -224,12 +225,7 @@ def reference_at_scan(ref: ReferenceObject, instrument: CtInstrument):
 
 def write_yaml(path, data: dict) -> pathlib.Path:
     """Write a dict as YAML atomically (temp file + rename: never a half-written file)."""
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(yaml.safe_dump(data, sort_keys=False, default_flow_style=None), encoding="utf-8")
-    tmp.replace(path)
-    return path
+    return write_text_atomic(path, yaml.safe_dump(data, sort_keys=False, default_flow_style=None))
 
 
 def default_instrument_path() -> pathlib.Path:

@@ -10,6 +10,7 @@ import pathlib
 import numpy as np
 
 from ct_calib_nodes.core.scenario import CampaignTruth
+from ct_calib_nodes.io.atomic import write_text_atomic
 from ct_calib_nodes.io.ct_files import write_yaml
 
 
@@ -48,15 +49,10 @@ def write_reference_error_map(path, truth: CampaignTruth) -> pathlib.Path:
     """The true error map as a reference CSV (format of core.report.read_reference_error_map):
     measured along the stage travel, as a laser interferometer would, with the project's sign."""
     em = truth.error_map("travel")
-    path = pathlib.Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     cols = ["positioning_m", "straightness_x_m", "straightness_y_m", "pitch_rad", "yaw_rad", "roll_rad"]
     lines = ["# simulated independent reference: the simulator's true stage error map (SI units), measured",
              "# along the stage travel (ISO 230-1 geometry); positioning + = travelled less than indexed",
              "srd_m," + ",".join(cols)]
     for k, srd in enumerate(truth.srd_reported_m):
         lines.append(f"{srd:.9g}," + ",".join(f"{em[c][k]:.9g}" for c in cols))
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(path)
-    return path
+    return write_text_atomic(path, "\n".join(lines) + "\n")
