@@ -63,21 +63,23 @@ def draw_physics(rng):
             "tube": bool(rng.random() < 0.5)}
 
 
-def run_trial(seed: int, n_views: int = 72, detector: DetectorSpec | None = None, cmm_u_m: float = 1e-6) -> Trial:
-    rng = np.random.default_rng(seed)
-    det = detector or DetectorSpec(1024, 1024, 0.0004)
-    w, srd, sdd = draw_instrument(rng)
+def draw_scene(rng, cmm_u_m: float):
+    """Renderer physics, the reference object as its file states it, the true object (CMM errors of
+    sd ``cmm_u_m`` on the centres; the support tube present or not) and the render settings."""
     phys = draw_physics(rng)
     ref_file = helix49(center_uncertainty_m=cmm_u_m)
     true_obj = dataclasses.replace(ref_file, centres_of_m=ref_file.centres_of_m
                                    + rng.normal(0.0, cmm_u_m, ref_file.centres_of_m.shape),
                                    tube=ref_file.tube if phys["tube"] else None)
     settings = RenderSettings(flat_field_counts=phys["flat_field_counts"], blur_sigma_px=phys["blur_sigma_px"])
-    trial = Trial(w_true=w, srd_reported_m=srd, physics=phys)
-    proc = FrameProcessor(ref_file, det, sdd, phys["flat_field_counts"])
+    return phys, ref_file, true_obj, settings
+
+
+def detect_views(views, ref_file, det, sdd, flat_field_counts) -> CampaignAccumulator:
+    """Detection and identity on (mono16 image, alpha, reported SRD) views in order, as the offline tool
+    pairs them (one stamp per view); unusable frames are skipped. Returns the campaign's observations."""
+    proc = FrameProcessor(ref_file, det, sdd, flat_field_counts)
     acc = CampaignAccumulator()
-    alphas = np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)
-    stamp = 0
 
     def take(results):
         for fr in results:
@@ -85,14 +87,24 @@ def run_trial(seed: int, n_views: int = 72, detector: DetectorSpec | None = None
             idx = np.searchsorted(ref_file.ids, ids) if len(ids) else np.zeros(0, np.int64)
             acc.add_frame(fr.stamp_ns, fr.alpha_rad, fr.srd_reported_m, idx, uv, sig, 0, minor)
 
-    for a in alphas:
-        frame = render_projection(w, np.zeros(6), a, true_obj, det, settings, rng)
-        stamp += 100_000_000
+    for i, (image, alpha, srd) in enumerate(views, start=1):
         try:
-            take(proc.push(stamp, frame.image, "mono16", a, srd))
+            take(proc.push(i * 100_000_000, image, "mono16", alpha, srd))
         except FrameError:
             continue
     take(proc.flush())
+    return acc
+
+
+def run_trial(seed: int, n_views: int = 72, detector: DetectorSpec | None = None, cmm_u_m: float = 1e-6) -> Trial:
+    rng = np.random.default_rng(seed)
+    det = detector or DetectorSpec(1024, 1024, 0.0004)
+    w, srd, sdd = draw_instrument(rng)
+    phys, ref_file, true_obj, settings = draw_scene(rng, cmm_u_m)
+    trial = Trial(w_true=w, srd_reported_m=srd, physics=phys)
+    alphas = np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)
+    views = ((render_projection(w, np.zeros(6), a, true_obj, det, settings, rng).image, a, srd) for a in alphas)
+    acc = detect_views(views, ref_file, det, sdd, phys["flat_field_counts"])
     if not acc.positions:
         trial.outcome, trial.message = "no_data", "no frame usable"
         return trial
@@ -149,37 +161,16 @@ def run_error_map_trial(seed: int, n_positions: int = 7, n_views: int = 36,
     srd0 = min(srd0, 0.55)
     w[0] = srd0 + rng.uniform(-2e-3, 2e-3)
     w[9] = w[0] + rng.uniform(-1e-3, 1e-3)
-    phys = draw_physics(rng)
-    ref_file = helix49(center_uncertainty_m=cmm_u_m)
-    true_obj = dataclasses.replace(ref_file, centres_of_m=ref_file.centres_of_m
-                                   + rng.normal(0.0, cmm_u_m, ref_file.centres_of_m.shape),
-                                   tube=ref_file.tube if phys["tube"] else None)
-    settings = RenderSettings(flat_field_counts=phys["flat_field_counts"], blur_sigma_px=phys["blur_sigma_px"])
+    phys, ref_file, true_obj, settings = draw_scene(rng, cmm_u_m)
     srd = srd0 + np.linspace(0.0, 0.72 - srd0, n_positions)
     travel = srd - srd[0]
     travel_df = detector_rotation(w[4], w[5], w[6]).T @ np.array([0.0, 0.0, 1.0])
     errors = paper_like_stage_errors(travel) * np.array([rng.uniform(0.2, 1.0)] * 3 + [1.0] * 3)
     motions = stage_motions(travel, travel_df, errors)
-    proc = FrameProcessor(ref_file, det, sdd, phys["flat_field_counts"])
-    acc = CampaignAccumulator()
     alphas = np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)
-    stamp = 0
-
-    def take(results):
-        for fr in results:
-            ids, uv, sig, minor = fr.accepted()
-            idx = np.searchsorted(ref_file.ids, ids) if len(ids) else np.zeros(0, np.int64)
-            acc.add_frame(fr.stamp_ns, fr.alpha_rad, fr.srd_reported_m, idx, uv, sig, 0, minor)
-
-    for k in range(n_positions):
-        for a in alphas:
-            frame = render_projection(w, motions[k], a, true_obj, det, settings, rng)
-            stamp += 100_000_000
-            try:
-                take(proc.push(stamp, frame.image, "mono16", a, srd[k]))
-            except FrameError:
-                pass
-    take(proc.flush())
+    views = ((render_projection(w, motions[k], a, true_obj, det, settings, rng).image, a, srd[k])
+             for k in range(n_positions) for a in alphas)
+    acc = detect_views(views, ref_file, det, sdd, phys["flat_field_counts"])
     out = {"seed": seed, "physics": phys, "srd_m": srd.tolist(), "ok": False}
     st = solve_static(acc.positions[0].observations(), ref_file.centres_of_m, det, srd[0], sdd,
                       centre_uncertainty_m=ref_file.center_uncertainty_m)
