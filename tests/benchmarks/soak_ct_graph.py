@@ -213,7 +213,8 @@ def picms_case(seconds, rate, tmp):
     procs.start("tracker_sim", [exe("picms_nodes", "picms_tracker_sim"), "--ros-args"])
     procs.start("camera_sim", [exe("picms_nodes", "picms_camera_sim"), "--ros-args", "-p", f"rate_hz:={rate}"])
     procs.start("calibration", [exe("picms_nodes", "picms_calibration"), "--ros-args",
-                                "-p", f"output_file:={tmp / 'picms_calibration.yaml'}"])
+                                "-p", f"output_file:={tmp / 'picms_calibration.yaml'}",
+                                "-p", f"history_db:={tmp / 'history_picms.sqlite'}"])
     node = rclpy.create_node("soak_picms")
     cams = ("camera_1", "camera_2", "camera_3")
     got = {c: [] for c in cams}

@@ -19,6 +19,7 @@ import pytest
 from picms_nodes.core import camera, cellio, features, fitting, measure, part_program, render, scenes, targeting
 from picms_nodes.measure_sim import FullFirstFrame, config_file
 from picms_nodes.io.files import calibration_dict
+from picms_programs import chrome_targets_program
 
 
 def test_shipped_programs_load_and_plan():
@@ -188,17 +189,11 @@ def test_measure_short_program_end_to_end(sessions, tmp_path):
     rec, st, res, _ = sessions[0]
     truth = st.truth
     probe = targeting.Probe.from_calibration_yaml(calibration_dict(res), rec.camera_info)
-    text = """
-units: SI
-part: chrome_targets
-lighting: bright_field
-placement: {origin_at_stage: [0.0, 0.0, 0.0], tolerance: 0.0005, rotation_about_normal: null}
-features:
-  - {id: sq5, type: square, center: [-0.009, 0.008], side: 0.005, points_per_side: 2}
-  - {id: c7, type: circle, center: [0.009, -0.008], diameter: 0.007, points: 6}
-  - {id: grid, type: dot_grid, center: [0.0, 0.0], rows: 3, cols: 3, pitch: 0.0005, dot_diameter: 0.00025}
-  - {id: face, type: plane}
-"""
+    text = chrome_targets_program(
+        "{id: sq5, type: square, center: [-0.009, 0.008], side: 0.005, points_per_side: 2}",
+        "{id: c7, type: circle, center: [0.009, -0.008], diameter: 0.007, points: 6}",
+        "{id: grid, type: dot_grid, center: [0.0, 0.0], rows: 3, cols: 3, pitch: 0.0005, dot_diameter: 0.00025}",
+        "{id: face, type: plane}")
     prog = part_program.load(text)
     rng = np.random.default_rng(5)
     part = scenes.chrome_targets((1.5e-4, 2e-4, -1e-4), (-0.02, 0.015), -1.0)

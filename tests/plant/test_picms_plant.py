@@ -191,3 +191,34 @@ def test_stored_message_of_another_definition_is_not_decoded():
     assert ros_msg_bytes({"ros_msg": blob}, "metro_msgs/msg/ErrorMap") == b"\x00\x01\x00\x00"
     assert ros_msg_bytes({"ros_msg": dict(blob, type_hash="RIHS01_" + "0" * 64)}, "metro_msgs/msg/ErrorMap") is None
     assert ros_msg_bytes({"ros_msg": blob}, "metro_msgs/msg/CtGeometry") is None
+
+
+def test_restart_message_skips_a_superseded_calibration(calibrated, tmp_path):
+    """What the calibration node re-publishes at start (PicmsPlant -> HistoryHook.latest_msg) is the
+    newest valid calibration that no later verdict withdrew: the same record as History.latest_valid."""
+    import logging
+
+    from builtin_interfaces.msg import Time
+    from metro_msgs.msg import PicmsCalibration
+
+    from ct_calib_nodes.nodes.plant import HistoryHook
+    from picms_nodes.io.calibration_msg import calibration_msg
+    from picms_nodes.io.picms_history import KIND, MSG_TYPE, calibration_record
+
+    class Node:
+        def get_namespace(self):
+            return "/"
+
+        def get_logger(self):
+            return logging.getLogger("picms_test")
+
+    hook = HistoryHook(Node(), str(tmp_path / "h.sqlite"))
+    res = calibrated[0]
+    recs = [hook.store(calibration_record(res, cell="/", source="live", joint_stamps_ns=[10**9 * s]),
+                       calibration_msg(res, Time(sec=s), ""), MSG_TYPE) for s in (1, 2)]
+    rec, msg = hook.latest_msg(KIND, PicmsCalibration, MSG_TYPE)
+    assert rec.uid == recs[1].uid and msg.header.stamp.sec == 2
+    hook.history.supersede(recs[1], "poor_fit", "withdrawn by a later verdict")
+    rec, msg = hook.latest_msg(KIND, PicmsCalibration, MSG_TYPE)
+    assert rec.uid == recs[0].uid == hook.history.latest_valid("/", KIND).uid and msg.header.stamp.sec == 1
+    hook.close()

@@ -7,15 +7,9 @@ import json
 import pytest
 
 from picms_nodes import measure_offline
+from picms_programs import chrome_targets_program
 
-PROGRAM = """
-units: SI
-part: chrome_targets
-lighting: bright_field
-placement: {origin_at_stage: [0.0, 0.0, 0.0], tolerance: 0.0005, rotation_about_normal: null}
-features:
-  - {id: c7, type: circle, center: [0.009, -0.008], diameter: 0.007, points: 6}
-"""
+PROGRAM = chrome_targets_program("{id: c7, type: circle, center: [0.009, -0.008], diameter: 0.007, points: 6}")
 HOSTILE = [None, 0, -1, 1e308, float("nan"), "", "x", [], [1, 2], {}, {"a": 1}, [[float("nan")] * 3] * 3, True]
 FIELDS = ["mode", "program_yaml", "program", "points", "probe", "part_finding", "band_width_m"]
 

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import yaml
 
+from picms_programs import chrome_targets_program
 from test_picms_targeting_node import truth_calibration
 
 pytestmark = pytest.mark.ros
@@ -20,14 +21,8 @@ pytestmark = pytest.mark.ros
 SEED = 8
 PART_POS = (1.6e-4, -1.1e-4, 0.0)
 N_POINTS = 6
-PROGRAM = f"""
-units: SI
-part: chrome_targets
-lighting: bright_field
-placement: {{origin_at_stage: [0.0, 0.0, 0.0], tolerance: 0.0005, rotation_about_normal: null}}
-features:
-  - {{id: c7, type: circle, center: [0.009, -0.008], diameter: 0.007, points: {N_POINTS}}}
-"""
+PROGRAM = chrome_targets_program(
+    f"{{id: c7, type: circle, center: [0.009, -0.008], diameter: 0.007, points: {N_POINTS}}}")
 
 
 def test_measurement_service_points_latched_result_and_file(start_node, ros_node, tmp_path):

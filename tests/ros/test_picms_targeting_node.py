@@ -44,9 +44,8 @@ def truth_calibration(truth):
 
 
 def test_drive_probe_action_feature_and_direct_modes(start_node, ros_node, tmp_path):
-    from rclpy.action import ActionClient
-
     from metro_msgs.action import DriveProbe
+    from ros_actions import GoalClient
     from picms_nodes.core import camera, cell, scenes
 
     truth = cell.cell_from_seed(SEED)
@@ -61,15 +60,13 @@ def test_drive_probe_action_feature_and_direct_modes(start_node, ros_node, tmp_p
     start_node("picms_nodes", "picms_tracker_sim", "--ros-args", "-p", f"cell_seed:={SEED}",
                "-p", "smr_star_present:=false")
     tgt = start_node("picms_nodes", "picms_targeting", "--ros-args", "-p", f"calibration_file:={cal}")
-    client = ActionClient(ros_node, DriveProbe, "/picms/drive_probe")
-    assert ros_node.spin_until(client.server_is_ready, timeout=40), tgt.log()
+    client = GoalClient(ros_node, DriveProbe, "/picms/drive_probe")   # survives a lost goal response
+    assert client.wait_for_server(timeout=40), tgt.log()
 
     def run(goal, timeout=90):
         fb = []
-        fut = client.send_goal_async(goal, feedback_callback=lambda m: fb.append(m.feedback))
-        assert ros_node.spin_until(fut.done, timeout=30), tgt.log()
-        gh = fut.result()
-        assert gh.accepted, tgt.log()
+        gh = client.send_goal(goal, feedback_callback=lambda m: fb.append(m.feedback), timeout=30)
+        assert gh is not None and gh.accepted, tgt.log()
         rf = gh.get_result_async()
         assert ros_node.spin_until(rf.done, timeout=timeout), tgt.log() + cams.log()
         return rf.result().result, fb
@@ -96,18 +93,15 @@ def test_drive_probe_action_feature_and_direct_modes(start_node, ros_node, tmp_p
     res2, _ = run(DriveProbe.Goal(mode="direct", cameras=names[:2], pixels=bad))
     assert not res2.success and "inconsistent" in res2.message, res2.message
     # a malformed goal is rejected at once
-    fut = client.send_goal_async(DriveProbe.Goal(mode="direct", cameras=["camera_1"], pixels=[1.0, 2.0]))
-    assert ros_node.spin_until(fut.done, timeout=20)
-    assert not fut.result().accepted
+    gh = client.send_goal(DriveProbe.Goal(mode="direct", cameras=["camera_1"], pixels=[1.0, 2.0]), timeout=20)
+    assert gh is not None and not gh.accepted
     assert "goal rejected" in tgt.log()
     # cancel: accepted, honoured at the first iteration (the stage settled, before any move)
     from action_msgs.msg import GoalStatus
     fb = []
-    fut = client.send_goal_async(DriveProbe.Goal(mode="circle", cameras=names, rois=rois, diameter=250e-6),
-                                 feedback_callback=lambda m: fb.append(m.feedback))
-    assert ros_node.spin_until(fut.done, timeout=30), tgt.log()
-    gh = fut.result()
-    assert gh.accepted
+    gh = client.send_goal(DriveProbe.Goal(mode="circle", cameras=names, rois=rois, diameter=250e-6),
+                          feedback_callback=lambda m: fb.append(m.feedback), timeout=30)
+    assert gh is not None and gh.accepted
     cf = gh.cancel_goal_async()
     assert ros_node.spin_until(cf.done, timeout=20)
     assert len(cf.result().goals_canceling) == 1, "cancel refused"

@@ -38,14 +38,14 @@ from .lm import LOSSES, STOL, correlation_from_covariance, covariance_from_jacob
 from .noise import (MAX_RMS_RATIO, NoiseModel, assess_fit, axis_normals, axis_weights_sigma, estimate_noise,
                     sandwich_covariance)
 from .observations import CentreObservations
-from .static_solver import StaticResult, _plain, status_fields
+from .static_solver import FitResult, StaticResult, _plain, status_fields
 from .terms import check_terms
 
 MODES = ("multi", "single")
 
 
 @dataclass(frozen=True)
-class MotionResult:
+class MotionResult(FitResult):
     """Error motion of one stage position k relative to k = 1.
 
     Attributes
@@ -85,25 +85,7 @@ class MotionResult:
     noise : NoiseModel or None
     """
 
-    x: np.ndarray
-    names: tuple
-    units: tuple
-    covariance: np.ndarray
     covariance_total: np.ndarray | None
-    correlation: np.ndarray
-    normal_inverse: np.ndarray
-    variance_factor: float
-    residuals_px: np.ndarray
-    rms_px: float
-    cost: float
-    success: bool
-    status: int
-    message: str
-    nfev: int
-    njev: int
-    n_iter: int
-    n_obs: int
-    n_views: int
     mode: str
     condition: float
     x0: np.ndarray

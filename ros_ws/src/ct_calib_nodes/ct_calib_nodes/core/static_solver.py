@@ -42,7 +42,32 @@ def _plain(v):
 
 
 @dataclass(frozen=True)
-class StaticResult:
+class FitResult:
+    """The fields every least-squares solve of the CT cell reports (StaticResult, error_motion's
+    MotionResult); each documents them in its own terms."""
+
+    x: np.ndarray
+    names: tuple
+    units: tuple
+    covariance: np.ndarray
+    correlation: np.ndarray
+    normal_inverse: np.ndarray
+    variance_factor: float
+    residuals_px: np.ndarray
+    rms_px: float
+    cost: float
+    success: bool
+    status: int
+    message: str
+    nfev: int
+    njev: int
+    n_iter: int
+    n_obs: int
+    n_views: int
+
+
+@dataclass(frozen=True)
+class StaticResult(FitResult):
     """Solution of the static geometry at k = 1.
 
     Attributes
@@ -101,24 +126,6 @@ class StaticResult:
         Standard uncertainty of each calibrated centre (per coordinate) used.
     """
 
-    x: np.ndarray
-    names: tuple
-    units: tuple
-    covariance: np.ndarray
-    correlation: np.ndarray
-    normal_inverse: np.ndarray
-    variance_factor: float
-    residuals_px: np.ndarray
-    rms_px: float
-    cost: float
-    success: bool
-    status: int
-    message: str
-    nfev: int
-    njev: int
-    n_iter: int
-    n_obs: int
-    n_views: int
     n_spheres: int
     condition: float
     geometry: DetectorFrameGeometry | None

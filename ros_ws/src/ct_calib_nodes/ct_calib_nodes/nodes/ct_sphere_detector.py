@@ -33,6 +33,7 @@ frame on a free core (tests/benchmarks/bench_ct_detect.py), so a real CT's
 from __future__ import annotations
 
 import time
+from collections import deque
 
 from metro_msgs.msg import SphereObservationArray
 from rclpy.node import Node
@@ -80,6 +81,8 @@ class CtSphereDetector(Node):
         self.rate = FrameRateMonitor()
         self._last_lag_warning = -1e9
         self._dropped_logged = 0
+        self._in_hand = None        # stamp of the frame being processed (see _pair)
+        self._outbox = deque()      # its results not yet published
         qos = QOS_RELIABLE_STREAM if p["reliable"] else qos_profile_sensor_data
         self.pub = self.create_publisher(SphereObservationArray, "ct/observations", QOS_RELIABLE_STREAM)
         qos_image = qos
@@ -119,6 +122,14 @@ class CtSphereDetector(Node):
 
     def _pair(self, t, img, js):
         self.counts["frames"] += 1
+        # A stop (SIGINT raises KeyboardInterrupt in the callback) can land while a frame is being
+        # processed: the frame's stamp stays in ``_in_hand`` and its results in ``_outbox`` until
+        # published, so close() can say what became of it instead of losing it silently.
+        self._in_hand = t
+        self._process(t, img, js)
+        self._in_hand = None
+
+    def _process(self, t, img, js):
         try:
             alpha, srd = stage_from_joint_state(js)
         except MessageError as exc:
@@ -128,14 +139,15 @@ class CtSphereDetector(Node):
         c0 = time.monotonic()
         try:
             image, enc = array_from_image(img, (self.instrument.detector.rows, self.instrument.detector.cols))
-            results = self.proc.push(t, image, enc, alpha, srd)
+            self._outbox.extend(self.proc.push(t, image, enc, alpha, srd))
             self._keep_up(t, time.monotonic() - c0)
         except (MessageError, FrameError, ValueError) as exc:   # never take the node down
             self.counts["bad_frames"] += 1
             self.bad_input.report(IMAGE, exc)
             return
-        for fr in results:
-            self._publish(fr)
+        while self._outbox:
+            self._publish(self._outbox[0])
+            self._outbox.popleft()
 
     def _keep_up(self, stamp, seconds):
         if not self.rate.add(stamp, seconds):
@@ -194,13 +206,20 @@ class CtSphereDetector(Node):
         return plant.OK, "running" if c["frames"] else "waiting for frames", values
 
     def close(self):
+        ready = list(self._outbox)          # results of the frame in hand at the stop, not yet published
         pending = self.proc.flush()
-        lost = 0
-        for fr in pending:
+        known = {fr.stamp_ns for fr in ready + pending}
+        interrupted = self._in_hand is not None and self._in_hand not in known
+        lost = unsent = 0
+        for k, fr in enumerate(ready + pending):
             try:
                 self._publish(fr)
             except Exception:  # noqa: BLE001 - the context is already shut down (Ctrl-C): nothing can be sent
-                lost += 1
+                if k < len(ready):
+                    unsent += 1
+                else:
+                    lost += 1
+        self._outbox.clear()
         self.pairer.expire()
         self.counts["unpaired"] = self.pairer.total_dropped()
         self.bad_input.maybe_summarise(force=True)
@@ -211,6 +230,11 @@ class CtSphereDetector(Node):
         if lost:
             msg += (f"; {lost} frame(s) still held for identity initialisation were not published "
                     "(stopped before the position completed)")
+        if unsent:
+            msg += f"; {unsent} frame(s) processed at the stop were not published"
+        if interrupted:
+            msg += (f"; 1 frame in progress at the stop (stamp {self._in_hand} ns) was dropped: "
+                    "the stop interrupted its processing")
         print(f"[ct_sphere_detector] {msg}", flush=True)
 
 

@@ -267,8 +267,9 @@ class PicmsCalibrationNode(Node):
 
 
 def main(args=None):
-    from ct_calib_nodes.nodes.runner import run_node  # noqa: PLC0415
+    from ct_calib_nodes.nodes.runner import release_frame_memory, run_node  # noqa: PLC0415
 
+    print(f"[picms_calibration] {release_frame_memory()}", flush=True)   # 5 MP frames: memory flat when idle
     return run_node(PicmsCalibrationNode, args, threads=3)
 
 

@@ -118,6 +118,9 @@ class PicmsCameraSim(Node):
 
 
 def main(args=None):
+    from ct_calib_nodes.nodes.runner import release_frame_memory  # noqa: PLC0415
+
+    print(f"[picms_camera_sim] {release_frame_memory()}", flush=True)   # 5 MP frames in a writer history of depth 200
     return run_node(PicmsCameraSim, args)
 
 
