@@ -755,7 +755,9 @@ def campaign_sentence(camp: dict) -> str:
         return f" Campaign-long drift not judged: {camp.get('why', 'not performed')}."
     if camp["adequate"]:
         lim = camp["detection_limits"].get("focal_spot_drift", {}).get("limit")
-        return (f" Over the campaign ({camp['n_positions']} positions, {camp['span_s'] / 60:.0f} min) the focal "
+        span = camp["span_s"]
+        span = f"{span:.0f} s" if span < 120 else f"{span / 60:.0f} min" if span < 7200 else f"{span / 3600:.1f} h"
+        return (f" Over the campaign ({camp['n_positions']} positions, {span}) the focal "
                 f"spot stays put relative to the detector" + (f" (no drift across the beam above {lim:.3g} um)"
                                                               if lim else "") + ".")
     parts = []
