@@ -199,22 +199,23 @@ def test_every_stage_position_is_judged_and_trends_are_fitted():
 
 
 def test_campaign_long_focal_spot_drift_is_named_with_its_size():
-    """Four stage positions on one instrument (campaign.truth_multi_campaign: true error motions, one hour between
-    scans): the focal spot drifting 400 um across the beam over the whole campaign moves only ~1.3 um within a
-    scan (a single position sees at most a um-sized drift of the drift group, never the campaign's 400 um); the
-    campaign-long test on the positions' calibrated focal spot names it (with its stated group: a detector drift)
-    and its size; the same campaign without the drift names nothing and states a detection limit. The false-alarm rate over 170 clean campaigns is in
+    """Three stage positions on one instrument (campaign.truth_multi_campaign: true error motions, one hour between
+    scans, 24 projections each): the focal spot drifting 400 um across the beam over the whole campaign (stated
+    limit about 120 um) moves only ~1.3 um within a scan (a single position sees at most a um-sized drift of the
+    drift group, never the campaign's 400 um); the campaign-long test on the positions' calibrated focal spot
+    names it (with its stated group: a detector drift) and its size; the same campaign without the drift names
+    nothing and states a detection limit. The false-alarm rate over 170 clean campaigns is in
     tests/benchmarks/validate_ct_campaign_drift.py (doc/ct_discrepancy.md)."""
     from ct_calib_nodes.core.ct_discrepancy import campaign_drift, run_positions
 
     from campaign import truth_multi_campaign
 
     for drift in (0.0, 400.0):
-        pos, tr = truth_multi_campaign(21, n_positions=4, n_views=36, gap_s=3600.0, focal_drift_um=drift,
+        pos, tr = truth_multi_campaign(21, n_positions=3, n_views=24, gap_s=3600.0, focal_drift_um=drift,
                                        noise_px=0.01)
         out = run_positions(pos, tr["ref"].centres_of_m, DET, tr["sdd"])
         camp = out["campaign"]
-        assert camp["performed"] and camp["n_positions"] == 4, camp
+        assert camp["performed"] and camp["n_positions"] == 3, camp
         assert abs(camp["time_srd_correlation"]) > 0.95         # positions visited in SRD order: said in separate_by
         lim = camp["detection_limits"]["focal_spot_drift"]["limit"]
         assert 0 < lim < 400, lim
