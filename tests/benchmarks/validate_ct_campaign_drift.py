@@ -8,7 +8,8 @@ stepped 40 mm towards the detector between ``--positions`` positions with a few 
 motions, one turn of ``--views`` projections per position, ``--gap`` s between scans (default 600), centre noise 0.005-0.03 px
 (half with a per-projection shared shift, stated sigma off by 0.6-1.6x). Hidden: the focal spot drifting
 linearly over the WHOLE campaign by ``--drifts`` um across the beam (random direction). run_positions judges
-every position and the campaign; reported: false alarms on clean campaigns, detection of the drift, whether
+every position and the campaign (``--rendered``: 1024^2 frames with random blur, counts and support tube through
+detection + identity, campaign.render_multi_campaign); reported: false alarms on clean campaigns, detection of the drift, whether
 every miss came with a detection limit above the truth, estimated / true, and the z-scores of the estimated
 drift vector (est - true) / u. Progress on stderr; the last stdout line is one JSON object.
 """
@@ -27,13 +28,13 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "ct_discrep
 
 import numpy as np  # noqa: E402
 
-from campaign import DET, truth_multi_campaign  # noqa: E402
+from campaign import DET, render_multi_campaign, truth_multi_campaign  # noqa: E402
 from ct_calib_nodes.core import ct_discrepancy as cd  # noqa: E402
 
 
-def one(seed, drift_um, n_positions, views, gap_s=600.0):
-    pos, tr = truth_multi_campaign(seed, n_positions=n_positions, n_views=views, focal_drift_um=drift_um,
-                                   gap_s=gap_s)
+def one(seed, drift_um, n_positions, views, gap_s=600.0, rendered=False):
+    make = render_multi_campaign if rendered else truth_multi_campaign
+    pos, tr = make(seed, n_positions=n_positions, n_views=views, focal_drift_um=drift_um, gap_s=gap_s)
     t0 = time.process_time()
     out = cd.run_positions(pos, tr["ref"].centres_of_m, DET, tr["sdd"])
     cpu = time.process_time() - t0
@@ -41,7 +42,7 @@ def one(seed, drift_um, n_positions, views, gap_s=600.0):
     f = {x["term"]: x for x in c["findings"]}
     lat = f.get("focal_spot_drift")
     true_vec = tr["focal_rate_m_per_s"][:2] * (c["span_s"] if c["performed"] else 0.0) * 1e6
-    rec = {"seed": seed, "drift_um": drift_um, "per_scan_um": tr["per_scan_um"], "sigma_px": tr["physics"]["sigma_px"],
+    rec = {"seed": seed, "drift_um": drift_um, "physics": tr["physics"], "n_positions_found": len(pos), "per_scan_um": tr["per_scan_um"], "sigma_px": tr["physics"].get("sigma_px"),
            "named": [x["term"] for x in c["findings"]], "unexplained": [u["axis"] for u in c["unexplained"]],
            "positions_inadequate": out["inadequate_positions"],
            "limit_um": c["detection_limits"].get("focal_spot_drift", {}).get("limit"),
@@ -63,17 +64,18 @@ def main():
     ap.add_argument("--views", type=int, default=48)
     ap.add_argument("--gap", type=float, default=600.0, help="seconds between the positions' scans")
     ap.add_argument("--start", type=int, default=7000)
+    ap.add_argument("--rendered", action="store_true", help="render 1024^2 frames and detect (render_multi_campaign)")
     a = ap.parse_args()
     recs = []
     for i in range(a.clean):
-        recs.append(one(a.start + i, 0.0, a.positions, a.views, a.gap))
+        recs.append(one(a.start + i, 0.0, a.positions, a.views, a.gap, a.rendered))
         print(json.dumps(recs[-1]), file=sys.stderr, flush=True)
     for d in [float(x) for x in a.drifts.split(",") if x]:
         for i in range(a.seeds):
-            recs.append(one(a.start + 1000 + i, d, a.positions, a.views, a.gap))
+            recs.append(one(a.start + 1000 + i, d, a.positions, a.views, a.gap, a.rendered))
             print(json.dumps(recs[-1]), file=sys.stderr, flush=True)
     clean = [r for r in recs if r["drift_um"] == 0]
-    summary = {"positions": a.positions, "views": a.views, "gap_s": a.gap, "clean": len(clean), "clean_false_alarms": sum(bool(r["named"] or r["unexplained"]) for r in clean),
+    summary = {"rendered": a.rendered, "positions": a.positions, "views": a.views, "gap_s": a.gap, "clean": len(clean), "clean_false_alarms": sum(bool(r["named"] or r["unexplained"]) for r in clean),
                "clean_per_position_false_alarms": sum(len(r["positions_inadequate"]) for r in clean),
                "clean_limit_um_median": float(np.median([r["limit_um"] for r in clean])) if clean else None,
                "cpu_s_median": float(np.median([r["cpu_s"] for r in recs]))}

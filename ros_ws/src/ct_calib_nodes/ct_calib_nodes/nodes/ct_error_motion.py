@@ -257,15 +257,15 @@ class CtErrorMotion(Node):
 
     # ------------------------------------------------------------------ model adequacy (issue 11)
     def _apply_marks(self, msg, positions) -> bool:
-        """Mark the motions of the positions a verdict on this map's stamp found inadequate (True if any)."""
+        """Mark the motions of the positions a verdict on this map's stamp found inadequate (True if any changed)."""
         marks = self.marks.get((msg.header.stamp.sec, msg.header.stamp.nanosec))
         if not marks:
             return False
         hit = False
         for k, m in zip(positions, msg.motions):
             why = marks.get(k, marks.get("all"))
-            if why is None:
-                continue
+            if why is None or m.status.code == POOR_FIT:
+                continue                           # not found inadequate, or POOR_FIT already (a repeated verdict)
             m.status.code = POOR_FIT
             m.status.message = f"{m.status.message}; {why}"[:2000]
             hit = True
