@@ -5,7 +5,9 @@ position marked POOR_FIT (what plant software reads: examples/plant_subscriber.p
 
 One cell, three stage positions of the paper-like campaign (scenario.default_campaign: true error motions of
 a few um), told nothing: positions 1 and 3 clean, at position 2 the detector creeps 0.12 px (48 um) across
-the beam during the scan. Position 2 must be named, positions 1 and 3 not (the clean controls)."""
+the beam during the scan. Position 2 must be named, positions 1 and 3 not (the clean controls). Before the
+campaign a malformed error map (one position) and a POOR_FIT report whose report_json is not JSON are sent:
+logged and skipped, nothing marked by them."""
 import json
 
 import numpy as np
@@ -51,7 +53,19 @@ def test_every_stage_position_is_judged_and_the_error_map_marked(start_node, ros
     ros_node.create_subscription(ErrorMap, "/cell/ct/error_map", maps.append, QOS_LATCHED)
     pub = ros_node.create_publisher(SphereObservationArray, "/cell/ct/observations", QOS_RELIABLE_STREAM)
     logs = lambda: "\n".join(n.log() for n in nodes)  # noqa: E731
-    assert ros_node.spin_until(lambda: pub.get_subscription_count() >= 3, timeout=60), logs()
+    bad_map = ros_node.create_publisher(ErrorMap, "/cell/ct/error_map", QOS_LATCHED)
+    bad_rep = ros_node.create_publisher(DiscrepancyReport, "/cell/ct/discrepancy/error_map", QOS_LATCHED)
+    assert ros_node.spin_until(lambda: pub.get_subscription_count() >= 3 and bad_map.get_subscription_count() >= 2
+                               and bad_rep.get_subscription_count() >= 2, timeout=60), logs()
+    junk = ErrorMap(mode="multi", srd_reported_m=[0.364])
+    junk.header.stamp = Time(sec=5)
+    bad_map.publish(junk)
+    junk_rep = DiscrepancyReport(report_json="not json")
+    junk_rep.header.stamp = Time(sec=5)
+    junk_rep.status.code = SolveStatus.POOR_FIT
+    bad_rep.publish(junk_rep)
+    assert ros_node.spin_until(lambda: "bad input on ct/error_map" in nodes[2].log()
+                               and "bad input on ct/discrepancy/error_map" in nodes[1].log(), timeout=30), logs()
     rng = np.random.default_rng(19)
     t_ns = 300 * 1_000_000_000
     for k in range(3):
@@ -67,10 +81,14 @@ def test_every_stage_position_is_judged_and_the_error_map_marked(start_node, ros
     def marked():
         return any(m.final and len(m.motions) == 2 and m.motions[DRIFT_AT - 1].status.code == SolveStatus.POOR_FIT
                    for m in maps)
-    assert ros_node.spin_until(lambda: any(len(r.findings) and len(json.loads(r.report_json)["stage_positions"]
-                                                                   ["positions"]) == 3 for r in reports)
-                               and marked(), timeout=120), logs()
-    rep = [r for r in reports if len(json.loads(r.report_json)["stage_positions"]["positions"]) == 3][-1]
+    def n_judged(r):
+        try:
+            return len(json.loads(r.report_json)["stage_positions"]["positions"])
+        except ValueError:
+            return -1                        # the malformed report sent above
+    assert ros_node.spin_until(lambda: any(len(r.findings) and n_judged(r) == 3 for r in reports) and marked(),
+                               timeout=120), logs()
+    rep = [r for r in reports if n_judged(r) == 3][-1]
     sp = json.loads(rep.report_json)["stage_positions"]
     # every position judged with its own calibration; only the drifting one inadequate
     assert [r["position"] for r in sp["positions"]] == [0, 1, 2]
@@ -97,6 +115,7 @@ def test_every_stage_position_is_judged_and_the_error_map_marked(start_node, ros
     assert "inadequate at stage position 2" in m.motions[0].status.message
     for n in nodes:
         assert n.proc.poll() is None, n.log()
+        assert "Traceback" not in n.log(), n.log()
     # history: the stage-position verdict as poor_fit, the final map superseded by a poor_fit record (original kept)
     recs = []
     for _ in range(40):
