@@ -4,14 +4,14 @@
         [--seeds 12] [--drifts 300,600] [--positions 4] [--views 48]
 
 Each campaign (tests/ct_discrepancy/campaign.truth_multi_campaign): one random misaligned instrument, the stage
-stepped 40 mm towards the detector between ``--positions`` positions with a few um / arcsec of true error
-motions, one turn of ``--views`` projections per position, ``--gap`` s between scans (default 600), centre noise 0.005-0.03 px
-(half with a per-projection shared shift, stated sigma off by 0.6-1.6x). Hidden: the focal spot drifting
-linearly over the WHOLE campaign by ``--drifts`` um across the beam (random direction). run_positions judges
-every position and the campaign (``--rendered``: 1024^2 frames with random blur, counts and support tube through
-detection + identity, campaign.render_multi_campaign); reported: false alarms on clean campaigns, detection of the drift, whether
-every miss came with a detection limit above the truth, estimated / true, and the z-scores of the estimated
-drift vector (est - true) / u. Progress on stderr; the last stdout line is one JSON object.
+stepped 40 mm towards the detector between ``--positions`` positions with a few um / arcsec of true error motions,
+one turn of ``--views`` projections per position, ``--gap`` s between scans (default 600), centre noise 0.005-0.03
+px (half with a per-projection shared shift, stated sigma off by 0.6-1.6x). Hidden: the focal spot drifting
+linearly over the WHOLE campaign by ``--drifts`` um across the beam (random direction). run_positions judges every
+position and the campaign (``--rendered``: 1024^2 frames with random blur, counts and support tube through
+detection + identity, campaign.render_multi_campaign); reported: false alarms on clean campaigns, detection of the
+drift, whether every miss came with a detection limit above the truth, estimated / true, and the z-scores of the
+estimated drift vector (est - true) / u. Progress on stderr; the last stdout line is one JSON object.
 """
 
 from __future__ import annotations
@@ -42,7 +42,8 @@ def one(seed, drift_um, n_positions, views, gap_s=600.0, rendered=False):
     f = {x["term"]: x for x in c["findings"]}
     lat = f.get("focal_spot_drift")
     true_vec = tr["focal_rate_m_per_s"][:2] * (c["span_s"] if c["performed"] else 0.0) * 1e6
-    rec = {"seed": seed, "drift_um": drift_um, "physics": tr["physics"], "n_positions_found": len(pos), "per_scan_um": tr["per_scan_um"], "sigma_px": tr["physics"].get("sigma_px"),
+    rec = {"seed": seed, "drift_um": drift_um, "physics": tr["physics"], "n_positions_found": len(pos),
+           "per_scan_um": tr["per_scan_um"], "sigma_px": tr["physics"].get("sigma_px"),
            "named": [x["term"] for x in c["findings"]], "unexplained": [u["axis"] for u in c["unexplained"]],
            "positions_inadequate": out["inadequate_positions"],
            "limit_um": c["detection_limits"].get("focal_spot_drift", {}).get("limit"),
@@ -50,7 +51,8 @@ def one(seed, drift_um, n_positions, views, gap_s=600.0, rendered=False):
     if lat is not None:
         est = np.array([p["value"] for p in lat["parameters"]]) * 1e6
         u = np.array([p["u"] for p in lat["parameters"]]) * 1e6
-        rec.update(est_um=float(lat["magnitude"]), ratio=float(lat["magnitude"] / max(rec["true_between_first_last_um"], 1e-9)),
+        rec.update(est_um=float(lat["magnitude"]),
+                   ratio=float(lat["magnitude"] / max(rec["true_between_first_last_um"], 1e-9)),
                    z=((est - true_vec) / u).tolist())
     return rec
 
@@ -75,7 +77,8 @@ def main():
             recs.append(one(a.start + 1000 + i, d, a.positions, a.views, a.gap, a.rendered))
             print(json.dumps(recs[-1]), file=sys.stderr, flush=True)
     clean = [r for r in recs if r["drift_um"] == 0]
-    summary = {"rendered": a.rendered, "positions": a.positions, "views": a.views, "gap_s": a.gap, "clean": len(clean), "clean_false_alarms": sum(bool(r["named"] or r["unexplained"]) for r in clean),
+    summary = {"rendered": a.rendered, "positions": a.positions, "views": a.views, "gap_s": a.gap, "clean": len(clean),
+               "clean_false_alarms": sum(bool(r["named"] or r["unexplained"]) for r in clean),
                "clean_per_position_false_alarms": sum(len(r["positions_inadequate"]) for r in clean),
                "clean_limit_um_median": float(np.median([r["limit_um"] for r in clean])) if clean else None,
                "cpu_s_median": float(np.median([r["cpu_s"] for r in recs]))}
@@ -85,7 +88,8 @@ def main():
         miss = [r for r in rs if "focal_spot_drift" not in r["named"]]
         z = np.concatenate([r["z"] for r in hit]) if hit else np.zeros(0)
         summary[f"drift_{d:g}um"] = {
-            "n": len(rs), "named": len(hit), "wrong_names": sum(bool(set(r["named"]) - {"focal_spot_drift"}) for r in rs),
+            "n": len(rs), "named": len(hit),
+            "wrong_names": sum(bool(set(r["named"]) - {"focal_spot_drift"}) for r in rs),
             "misses_with_limit_above_truth": sum(r["limit_um"] > r["true_between_first_last_um"] for r in miss),
             "per_scan_um": float(np.median([r["per_scan_um"] for r in rs])),
             "per_position_named": sum(bool(r["positions_inadequate"]) for r in rs),

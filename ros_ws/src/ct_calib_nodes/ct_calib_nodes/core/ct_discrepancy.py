@@ -785,7 +785,8 @@ def across_positions(rows: list, skipped: list) -> dict:
 
 
 def run_positions(positions: list, centres_of_m, detector: DetectorSpec, sdd_reported_m: float, *,
-                  min_views: int = 8, max_terms: int = 4, progress=None, first: int = 0, given: dict | None = None) -> dict:
+                  min_views: int = 8, max_terms: int = 4, progress=None, first: int = 0,
+                  given: dict | None = None) -> dict:
     """The engine at every stage position: ``positions`` is a list of (srd_reported_m, CentreObservations),
     numbered from ``first``; ``given``: {position: (static, run() result)} already made (e.g. the first).
 

@@ -308,7 +308,7 @@ class CtErrorMotion(Node):
             if mode == "multi":
                 self.last_map_status = ("poor_fit", rep.status.message)
             rec = self.stored_rec[mode]
-            if rec is not None and rec.data_end_ns is not None and rec.data_end_ns == stamp[0] * 1_000_000_000 + stamp[1]:
+            if rec is not None and rec.data_end_ns == stamp[0] * 1_000_000_000 + stamp[1]:
                 self.history.supersede(rec, "poor_fit", rep.status.message[:2000], msg=msg, type_name=MSG_TYPE,
                                        extra={"verdict": str(rep.verdict), "positions_marked": sorted(
                                            str(k) for k in marks)})
