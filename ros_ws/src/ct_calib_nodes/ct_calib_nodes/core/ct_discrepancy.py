@@ -27,7 +27,7 @@ import numpy as np
 from .ct_model import StaticKernel
 from .discrepancy import (BIC_THRESHOLD, Candidate, Dataset, _orth, analyse, locate, required_noncentrality,
                           sigma_from_chi2)
-from .geometry import STATIC_PARAM_NAMES, DetectorSpec, static_to_detector_frame
+from .geometry import STATIC_PARAM_NAMES, DetectorSpec, motion_rotation, static_to_detector_frame
 from .observations import CentreObservations
 
 ARCSEC = np.pi / (180.0 * 3600.0)
@@ -234,27 +234,35 @@ def scan_time(obs: CentreObservations):
     return (t - 0.5 * span) / span, span
 
 
-def predict_px(w, obs: CentreObservations, centres_of_m, detector: DetectorSpec, thetas: dict | None = None):
+def predict_px(w, obs: CentreObservations, centres_of_m, detector: DetectorSpec, thetas: dict | None = None, *,
+               motion=None, tau=None):
     """Modelled observation (col, row) (Q, 2) [px] of the nominal model extended by catalogue terms.
 
     ``thetas``: term id -> parameters (SI). With none it equals the static kernel's model (tested).
+    ``motion``: the stage's error motion (6,) of this position relative to the first (geometry.sphere_centres_df);
+    ``tau``: the normalised time of every observation for the time terms (default: this scan's, scan_time).
     """
     thetas = thetas or {}
     terms = [(CATALOGUE_BY_ID[k], np.asarray(v, dtype=float)) for k, v in thetas.items()]
     geom = static_to_detector_frame(np.asarray(w[:13], dtype=float), centres_of_m)
-    tau, _ = scan_time(obs)
+    tau = scan_time(obs)[0] if tau is None else np.asarray(tau, dtype=float)
     q = obs.n_obs
-    c0 = geom.centres_df_m[obs.sphere_index]
+    r_df, axis, c_df = np.asarray(geom.stage_df_m, float), np.asarray(geom.axis_df, float), geom.centres_df_m
+    if motion is not None:                                  # eqs 8-10: the stage moved and turned
+        m = np.asarray(motion, dtype=float)
+        g = motion_rotation(m[3], m[4], m[5])
+        c_df = (c_df - r_df) @ g.T + r_df + m[:3]
+        r_df, axis = r_df + m[:3], g @ axis
+    c0 = c_df[obs.sphere_index]
     st = _State(alpha=np.asarray(obs.alpha_rad, dtype=float).copy(), tau=tau, C=None,
-                S=np.tile(geom.source_df_m, (q, 1)), R=np.asarray(geom.stage_df_m, float),
-                axis=np.asarray(geom.axis_df, float), cen=None,
+                S=np.tile(geom.source_df_m, (q, 1)), R=r_df, axis=axis, cen=None,
                 half=(detector.cols * detector.pixel_pitch_m / 2.0, detector.rows * detector.pixel_pitch_m / 2.0))
     for t, th in terms:
         if t.stage == "angle":
             t.fn(th, st)
     ca, sa = np.cos(st.alpha), np.sin(st.alpha)
     st.C = st.R + _rotate(c0 - st.R, st.axis, ca, sa)
-    st.cen = st.R + _rotate(np.tile(geom.centres_df_m.mean(axis=0) - st.R, (q, 1)), st.axis, ca, sa)
+    st.cen = st.R + _rotate(np.tile(c_df.mean(axis=0) - st.R, (q, 1)), st.axis, ca, sa)
     for stage in ("object", "source"):
         for t, th in terms:
             if t.stage == stage:
