@@ -7,7 +7,8 @@ One cell, three stage positions of the paper-like campaign (scenario.default_cam
 a few um), told nothing: positions 1 and 3 clean, at position 2 the detector creeps 0.12 px (48 um) across
 the beam during the scan. Position 2 must be named, positions 1 and 3 not (the clean controls). Before the
 campaign a malformed error map (one position) and a POOR_FIT report whose report_json is not JSON are sent:
-logged and skipped, nothing marked by them."""
+logged and skipped, nothing marked by them. A restarted discrepancy node re-publishes the stored verdict; the
+error-motion node does not mark (nor re-publish) the map again."""
 import json
 
 import numpy as np
@@ -134,3 +135,14 @@ def test_every_stage_position_is_judged_and_the_error_map_marked(start_node, ros
             [(r.id, r.status) for r in multi]
         assert h.latest_valid("/cell", "ct_error_map") is None or \
             h.latest_valid("/cell", "ct_error_map").result.get("mode") == "single"
+    # a restarted discrepancy node re-publishes the stored verdict; the error-motion node does not mark twice
+    n_reports, n_maps = len(reports), len(maps)
+    nodes[2].proc.kill()
+    nodes[2].proc.wait(timeout=15)
+    disc2 = start_node("ct_calib_nodes", "ct_discrepancy_node", *common, name="disc2")
+    assert ros_node.spin_until(lambda: len(reports) > n_reports, timeout=60), disc2.log()
+    again = reports[-1]
+    assert again.header.stamp == rep.header.stamp and again.status.code == SolveStatus.POOR_FIT, again.verdict
+    ros_node.spin_until(lambda: False, timeout=2.0)
+    assert len(maps) == n_maps, [(m.header.stamp, [e.status.code for e in m.motions]) for m in maps[n_maps:]]
+    assert disc2.proc.poll() is None and nodes[1].proc.poll() is None, disc2.log() + nodes[1].log()

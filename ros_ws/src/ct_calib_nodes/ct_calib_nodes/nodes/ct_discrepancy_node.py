@@ -92,7 +92,8 @@ class CtDiscrepancyNode(Node):
             self.pub.publish(msg)
             self.get_logger().info(f"re-published the latest discrepancy report of cell {self.history.cell}")
         _rec, mmsg = self.history.latest_msg(KIND_MAP, DiscrepancyReport, MSG_TYPE)
-        mmsg = mmsg or self._latest_any(KIND_MAP)
+        if mmsg is None and self.history.history is not None:
+            mmsg = self._latest_any(KIND_MAP)
         if mmsg is not None:
             self.map_pub.publish(mmsg)
             self.get_logger().info(f"re-published the latest stage-position report of cell {self.history.cell}")
