@@ -214,13 +214,14 @@ class CtErrorMotion(Node):
                                 geometry_stamp=Time(sec=self.static_stamp_ns // 1_000_000_000,
                                                     nanosec=self.static_stamp_ns % 1_000_000_000), final=final)
             status, text = map_status({k: self.results[mode][k] for k in ks[1:]})
-            if self._apply_marks(msg, ks[1:]):
+            marked = self._apply_marks(msg, ks[1:])      # a verdict on this stamp arrived before (re-solve)
+            if marked:
                 status, text = "poor_fit", "found inadequate by the discrepancy engine: " + text
             if mode == "multi":
                 self.last_map_status, self.last_solve_t = (status, text), time.monotonic()
             if not final and self.valid[mode] is not None and self.valid_campaign.get(mode) == self.guard.campaign_id:
                 pass   # this campaign's final map is out: a re-solve never re-publishes a shorter, growing one
-            elif status in ("success", "poor_fit") or self.valid[mode] is None:
+            elif status == "success" or marked or self.valid[mode] is None:
                 self.pubs[mode].publish(msg)
                 self.last_pub[mode] = (msg, list(ks[1:]))
                 if status == "success" and final:
