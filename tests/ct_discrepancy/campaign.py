@@ -222,3 +222,108 @@ def analyse_truth_campaign(seed: int, effect: str = "clean", scale: float = 1.0,
     obs, truth = truth_campaign(seed, effect, scale, n_views)
     st = solve_static(obs, truth["ref"].centres_of_m, DET, truth["srd"], truth["sdd"])
     return ct_discrepancy.run(obs, st, DET), truth, st
+
+
+def truth_multi_campaign(seed: int, n_positions: int = 4, n_views: int = 48, frame_dt_s: float = 1.0,
+                         gap_s: float = 600.0, step_m: float = 0.04, focal_drift_um: float = 0.0,
+                         noise_px: float | None = None):
+    """Feature-level campaign of ``n_positions`` stage positions on ONE instrument (the multi-position helper).
+
+    The stage travels ``step_m`` towards the detector between positions (reported SRD grows by it) with small
+    true error motions (a few um of positioning and straightness, a few arcsec of pitch/yaw/roll); each
+    position is one turn of ``n_views`` projections, ``gap_s`` seconds between the positions' scans (travel,
+    settling). ``focal_drift_um``: the focal spot drifts linearly over the WHOLE campaign by this much across
+    the beam (random direction in the detector plane), a campaign-long effect; per scan it moves by only
+    that times scan / campaign duration. Noise, shared shift and misstated sigma as :func:`truth_campaign`.
+
+    Returns (positions [(srd_reported_m, CentreObservations)], truth dict).
+    """
+    from ct_calib_nodes.core.observations import CentreObservations  # noqa: PLC0415
+    from ct_calib_nodes.core.render import frame_truth  # noqa: PLC0415
+
+    rng = np.random.default_rng(seed)
+    w, srd = draw_instrument(rng, srd_range=(0.30, 0.34))
+    scan = (n_views - 1) * frame_dt_s
+    campaign = n_positions * scan + (n_positions - 1) * gap_s
+    ph = rng.uniform(0, 2 * np.pi)
+    rate = focal_drift_um * 1e-6 / campaign * np.array([np.cos(ph), np.sin(ph), 0.0])
+    settings = RenderSettings(focal_spot_drift_m_per_s=tuple(rate))
+    sigma = float(noise_px if noise_px is not None else rng.uniform(0.005, 0.03))
+    tau = float(rng.choice([0.0, 0.5]) * sigma)
+    stated = sigma * float(rng.uniform(0.6, 1.6))
+    ref = helix49()
+    positions, motions = [], []
+    for k in range(n_positions):
+        m = np.zeros(6) if k == 0 else np.concatenate([rng.normal(0, 3e-6, 3), rng.normal(0, 3 * ARCSEC, 3)])
+        m[2] += k * step_m                             # along {DF} +Z, towards the detector: the SRD grows
+        motions.append(m)
+        t0 = k * (scan + gap_s) - 0.5 * campaign       # renderer time 0 = campaign middle
+        uv, idx, minor, sig, alphas, stamps = [], [], [], [], [], []
+        for j, a in enumerate(np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)):
+            t = t0 + j * frame_dt_s
+            ft = frame_truth(w, m, a, ref, DET, settings, time_s=t)
+            use = np.flatnonzero(ft.usable)
+            shift = rng.normal(0.0, tau, 2) if tau > 0 else np.zeros(2)
+            uv.append(ft.ellipse_centre_px[use] + rng.normal(0.0, sigma, (use.size, 2)) + shift)
+            idx.append(use)
+            minor.append(ft.semi_axes_px[use, 1])
+            sig.append(np.full(use.size, stated))
+            alphas.append(a)
+            stamps.append(STAMP0_NS + int(round(t * 1e9)))
+        obs = CentreObservations.from_views(uv, idx, np.array(alphas),
+                                            stamp_ns_per_view=np.array(stamps, dtype=np.int64),
+                                            sigma_px_per_view=sig, minor_axis_px_per_view=minor)
+        positions.append((srd + k * step_m, obs))
+    return positions, {"w": w, "srd": srd, "sdd": SDD, "ref": ref, "motions": motions,
+                       "focal_drift_um": focal_drift_um, "focal_rate_m_per_s": rate,
+                       "per_scan_um": focal_drift_um * scan / campaign, "campaign_s": campaign,
+                       "physics": {"sigma_px": sigma, "shared_px": tau, "stated_px": stated}}
+
+
+def render_multi_campaign(seed: int, n_positions: int = 3, n_views: int = 36, frame_dt_s: float = 1.0,
+                          gap_s: float = 3600.0, step_m: float = 0.04, focal_drift_um: float = 0.0,
+                          det: DetectorSpec | None = None):
+    """Rendered counterpart of :func:`truth_multi_campaign`: the same campaign (one random instrument, true error
+    motions, a focal spot drifting ``focal_drift_um`` across the beam over the whole campaign) rendered with
+    random physics (blur, counts, support tube) and run through detection + identity, positions split by the
+    reported SRD as the offline tool does. Returns (positions [(srd_reported_m, CentreObservations)], truth)."""
+    rng = np.random.default_rng(seed)
+    det = det or DET
+    w, srd = draw_instrument(rng, srd_range=(0.30, 0.34))
+    scan = (n_views - 1) * frame_dt_s
+    campaign = n_positions * scan + (n_positions - 1) * gap_s
+    ph = rng.uniform(0, 2 * np.pi)
+    rate = focal_drift_um * 1e-6 / campaign * np.array([np.cos(ph), np.sin(ph), 0.0])
+    phys = {"blur_sigma_px": float(rng.uniform(0.4, 1.0)), "flat_field_counts": float(rng.uniform(2e4, 6e4)),
+            "tube": bool(rng.random() < 0.5), "detector_px": det.cols}
+    ref = helix49()
+    obj = dataclasses.replace(ref, tube=ref.tube if phys["tube"] else None)
+    settings = RenderSettings(flat_field_counts=phys["flat_field_counts"], blur_sigma_px=phys["blur_sigma_px"],
+                              focal_spot_drift_m_per_s=tuple(rate))
+    proc = FrameProcessor(ref, det, SDD, phys["flat_field_counts"])
+    acc = CampaignAccumulator()
+
+    def take(results):
+        for fr in results:
+            ids, uv, sig, minor = fr.accepted()
+            idx = np.searchsorted(ref.ids, ids) if len(ids) else np.zeros(0, np.int64)
+            acc.add_frame(fr.stamp_ns, fr.alpha_rad, fr.srd_reported_m, idx, uv, sig, 0, minor)
+
+    motions = []
+    for k in range(n_positions):
+        m = np.zeros(6) if k == 0 else np.concatenate([rng.normal(0, 3e-6, 3), rng.normal(0, 3 * ARCSEC, 3)])
+        m[2] += k * step_m
+        motions.append(m)
+        t0 = k * (scan + gap_s) - 0.5 * campaign
+        for j, a in enumerate(np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)):
+            t = t0 + j * frame_dt_s
+            frame = render_projection(w, m, a, obj, det, settings, rng, time_s=t)
+            try:
+                take(proc.push(STAMP0_NS + int(round(t * 1e9)), frame.image, "mono16", a, srd + k * step_m))
+            except FrameError:
+                continue
+    take(proc.flush())
+    positions = [(p.srd_reported_m, p.observations()) for p in acc.positions]
+    return positions, {"w": w, "srd": srd, "sdd": SDD, "ref": ref, "motions": motions, "physics": phys,
+                       "focal_drift_um": focal_drift_um, "focal_rate_m_per_s": rate,
+                       "per_scan_um": focal_drift_um * scan / campaign, "campaign_s": campaign}

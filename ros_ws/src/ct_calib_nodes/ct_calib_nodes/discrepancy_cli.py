@@ -180,7 +180,7 @@ def write_report(out: dict, tmp: pathlib.Path, plots: list, recording) -> None:
             for b in img["residual_by_band"])]
     sp = out.get("stage_positions")
     if sp:
-        lines += ["", "## Further stage positions (each with its own nominal calibration)", "",
+        lines += ["", "## Every stage position (each with its own nominal calibration)", "",
                   "| position | SRD [mm] | adequate | named |", "| --- | --- | --- | --- |"]
         lines += [f"| {r['position'] + 1} | {r['srd_reported_m'] * 1e3:.3f} | {r['adequate']} | "
                   + (", ".join(f"{f['term']} {f['magnitude']:.3g} {f['unit']}" for f in r["findings"]) or "-") + " |"
@@ -189,6 +189,14 @@ def write_report(out: dict, tmp: pathlib.Path, plots: list, recording) -> None:
         lines += [f"- trend of {t['term']} with SRD: {t.get('slope_per_m_srd', float('nan')):.4g} {t['unit']}/m "
                   f"({t.get('slope_significance_sigma', float('nan')):.1f} sigma) over {t['n_positions']} positions"
                   for t in sp["trends"]]
+        from ct_calib_nodes.core.ct_discrepancy import campaign_sentence  # noqa: PLC0415
+
+        camp = sp["campaign"]
+        lines += ["", "Campaign-long (the focal spot of every position's calibration against time):"
+                  + campaign_sentence(camp)]
+        if camp.get("performed"):
+            lines += [f"- detection limit of {k}: " + (f"{v['limit']:.3g} {v['unit']}" if v.get("limit") else "none")
+                      + f"; reveal by: {v['reveal_by']}" for k, v in camp["detection_limits"].items()]
     lines += ["", "## Detection limits of this recording (90 % power)", "", "| term | smallest detectable | reveal by |",
               "| --- | --- | --- |"]
     for k, v in out["detection_limits"].items():
@@ -253,18 +261,18 @@ def main(argv=None) -> int:
         out["image_level"] = {"performed": False, "why": f"image-level check failed: {exc}"}
     out["verdict"] += image_sentence(out["image_level"])
     t3 = time.perf_counter()
-    if len(res.acc.positions) > 1:          # the stage-position axis: the engine at every further position
-        more = [(p.srd_reported_m, p.observations()) for p in res.acc.positions[1:]]
-        sp = ct_discrepancy.run_positions(more, ref.centres_of_m, instrument.detector, instrument.sdd_reported_m,
-                                          max_terms=args.max_terms, progress=say)
-        for r in sp["positions"] + sp["not_judged"]:
-            r["position"] += 1
+    if len(res.acc.positions) > 1:          # the stage-position axis: the engine at every position, the campaign
+        every = [(p.srd_reported_m, p.observations()) for p in res.acc.positions]
+        sp = ct_discrepancy.run_positions(every, ref.centres_of_m, instrument.detector, instrument.sdd_reported_m,
+                                          max_terms=args.max_terms, progress=say, given={0: (res.static, out)})
         out["stage_positions"] = sp
-        bad = [r for r in sp["positions"] if not r["adequate"]]
-        out["verdict"] += (f" Further stage positions: {len(bad)} of {len(sp['positions'])} judged inadequate"
+        bad = [r for r in sp["positions"] if not r["adequate"] and r["position"] > 0]
+        n_more = sum(r["position"] > 0 for r in sp["positions"])
+        out["verdict"] += (f" Further stage positions: {len(bad)} of {n_more} judged inadequate"
                            + (" (" + "; ".join(f"position {r['position'] + 1}: "
                                                 + (", ".join(f['term'] for f in r['findings']) or "unexplained structure")
                                                 for r in bad) + ")" if bad else "") + ".")
+        out["verdict"] += ct_discrepancy.campaign_sentence(sp["campaign"])
     t3b = time.perf_counter()
     out["recording"] = str(rec)
     out["nominal_outcome"] = res.static.outcome

@@ -25,8 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .ct_model import StaticKernel
-from .discrepancy import BIC_THRESHOLD, Candidate, Dataset, _orth, analyse, locate, sigma_from_chi2
-from .geometry import STATIC_PARAM_NAMES, DetectorSpec, static_to_detector_frame
+from .discrepancy import (BIC_THRESHOLD, Candidate, Dataset, _orth, analyse, locate, required_noncentrality,
+                          sigma_from_chi2)
+from .geometry import STATIC_PARAM_NAMES, DetectorSpec, motion_rotation, static_to_detector_frame
 from .observations import CentreObservations
 
 ARCSEC = np.pi / (180.0 * 3600.0)
@@ -233,27 +234,35 @@ def scan_time(obs: CentreObservations):
     return (t - 0.5 * span) / span, span
 
 
-def predict_px(w, obs: CentreObservations, centres_of_m, detector: DetectorSpec, thetas: dict | None = None):
+def predict_px(w, obs: CentreObservations, centres_of_m, detector: DetectorSpec, thetas: dict | None = None, *,
+               motion=None, tau=None):
     """Modelled observation (col, row) (Q, 2) [px] of the nominal model extended by catalogue terms.
 
     ``thetas``: term id -> parameters (SI). With none it equals the static kernel's model (tested).
+    ``motion``: the stage's error motion (6,) of this position relative to the first (geometry.sphere_centres_df);
+    ``tau``: the normalised time of every observation for the time terms (default: this scan's, scan_time).
     """
     thetas = thetas or {}
     terms = [(CATALOGUE_BY_ID[k], np.asarray(v, dtype=float)) for k, v in thetas.items()]
     geom = static_to_detector_frame(np.asarray(w[:13], dtype=float), centres_of_m)
-    tau, _ = scan_time(obs)
+    tau = scan_time(obs)[0] if tau is None else np.asarray(tau, dtype=float)
     q = obs.n_obs
-    c0 = geom.centres_df_m[obs.sphere_index]
+    r_df, axis, c_df = np.asarray(geom.stage_df_m, float), np.asarray(geom.axis_df, float), geom.centres_df_m
+    if motion is not None:                                  # eqs 8-10: the stage moved and turned
+        m = np.asarray(motion, dtype=float)
+        g = motion_rotation(m[3], m[4], m[5])
+        c_df = (c_df - r_df) @ g.T + r_df + m[:3]
+        r_df, axis = r_df + m[:3], g @ axis
+    c0 = c_df[obs.sphere_index]
     st = _State(alpha=np.asarray(obs.alpha_rad, dtype=float).copy(), tau=tau, C=None,
-                S=np.tile(geom.source_df_m, (q, 1)), R=np.asarray(geom.stage_df_m, float),
-                axis=np.asarray(geom.axis_df, float), cen=None,
+                S=np.tile(geom.source_df_m, (q, 1)), R=r_df, axis=axis, cen=None,
                 half=(detector.cols * detector.pixel_pitch_m / 2.0, detector.rows * detector.pixel_pitch_m / 2.0))
     for t, th in terms:
         if t.stage == "angle":
             t.fn(th, st)
     ca, sa = np.cos(st.alpha), np.sin(st.alpha)
     st.C = st.R + _rotate(c0 - st.R, st.axis, ca, sa)
-    st.cen = st.R + _rotate(np.tile(geom.centres_df_m.mean(axis=0) - st.R, (q, 1)), st.axis, ca, sa)
+    st.cen = st.R + _rotate(np.tile(c_df.mean(axis=0) - st.R, (q, 1)), st.axis, ca, sa)
     for stage in ("object", "source"):
         for t, th in terms:
             if t.stage == stage:
@@ -558,49 +567,70 @@ def significance_of(d_chi2, dof):  # re-export for callers
 
 
 # --------------------------------------------------------------------------- stage-position axis
-def run_positions(positions: list, centres_of_m, detector: DetectorSpec, sdd_reported_m: float, *,
-                  min_views: int = 8, max_terms: int = 4, progress=None) -> dict:
-    """The engine at every stage position: ``positions`` is a list of (srd_reported_m, CentreObservations).
+def source_df(x13, cov13, centres_of_m):
+    """Focal spot in {DF} (3,) [m] of a static solution and its covariance (3, 3) (central differences).
 
-    Each position gets its own nominal calibration (the static solver on that position's projections, the
-    13 parameters free: the stage's error motion between positions is absorbed, what changes WITHIN a
-    position's scan is not) and its own verdict. Across positions, the magnitude of every term named at two
-    or more positions is fitted linearly against the reported SRD and against the scan's mid time, so an
-    effect that grows with magnification or over the campaign (a detector or source drift) is seen as such.
-    Returns {"positions": [...], "trends": [...], "not_judged": [...]}.
-    """
+    In the model of a campaign (static geometry + per-position error motions of the stage) the focal spot
+    relative to the detector is the same at every stage position: the error motions move the stage only."""
+    x = np.asarray(x13[:13], dtype=float)
+    s0 = static_to_detector_frame(x, centres_of_m).source_df_m
+    if cov13 is None:
+        return s0, None
+    cov = np.asarray(cov13, dtype=float)[:13, :13]
+    jac = np.zeros((3, 13))
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    for i in range(13):
+        h = max(0.1 * sd[i], 1e-9)
+        up, dn = x.copy(), x.copy()
+        up[i] += h
+        dn[i] -= h
+        jac[:, i] = (static_to_detector_frame(up, centres_of_m).source_df_m
+                     - static_to_detector_frame(dn, centres_of_m).source_df_m) / (2 * h)
+    return s0, jac @ cov @ jac.T
+
+
+def judge_position(k: int, srd_reported_m: float, obs: CentreObservations, centres_of_m, detector: DetectorSpec,
+                   sdd_reported_m: float, *, min_views: int = 8, max_terms: int = 4, static=None, out=None):
+    """The engine at one stage position with its own nominal calibration (the static solver on that position's
+    projections, the 13 parameters free, unless ``static`` is given; ``out``: its run() result if already made).
+
+    Returns (row, None) or (None, {"position", "why"}) when the position cannot be judged."""
     from .static_solver import solve_static  # noqa: PLC0415
 
-    say = progress or (lambda _m: None)
-    rows, skipped = [], []
-    for k, (srd, obs) in enumerate(positions):
-        if obs.n_views < min_views:
-            skipped.append({"position": k, "why": f"{obs.n_views} projection(s), fewer than {min_views}"})
-            continue
-        st = solve_static(obs, centres_of_m, detector, float(srd), float(sdd_reported_m))
-        if not np.all(np.isfinite(st.x[:13])) or st.outcome in ("failed", "insufficient_data", "degenerate"):
-            skipped.append({"position": k, "why": f"nominal calibration {st.outcome}: {st.message}"})
-            continue                   # a POOR_FIT calibration is judged: that is where the engine is needed
-        out = run(obs, st, detector, max_terms=max_terms)
-        t_mid = None if obs.stamp_ns is None else float(0.5 * (obs.stamp_ns.min() + obs.stamp_ns.max()))
-        rows.append({"position": k, "srd_reported_m": float(srd), "mid_stamp_ns": t_mid, "adequate": out["adequate"],
-                     "nominal_outcome": st.outcome,
-                     "verdict": out["verdict"], "noise_floor_px": out["noise_floor"]["independent_sd"],
-                     "findings": [{"term": f["term"], "magnitude": f["magnitude"], "magnitude_u": f["magnitude_u"],
-                                   "unit": f["magnitude_unit"], "significance_sigma": f["significance_sigma"],
-                                   "degenerate_with": f["degenerate_with"]} for f in out["findings"]],
-                     "unexplained": [u["axis"] for u in out["unexplained"]]})
-        say(f"stage position {k + 1} (SRD {srd * 1e3:.2f} mm): {out['verdict']}")
+    if obs.n_views < min_views:
+        return None, {"position": k, "why": f"{obs.n_views} projection(s), fewer than {min_views}"}
+    st = static if static is not None else solve_static(obs, centres_of_m, detector, float(srd_reported_m),
+                                                        float(sdd_reported_m))
+    if not np.all(np.isfinite(st.x[:13])) or st.outcome in ("failed", "insufficient_data", "degenerate"):
+        return None, {"position": k, "why": f"nominal calibration {st.outcome}: {st.message}"}
+    # a POOR_FIT calibration is judged: that is where the engine is needed
+    out = out if out is not None else run(obs, st, detector, max_terms=max_terms)
+    t_mid = None if obs.stamp_ns is None else float(0.5 * (obs.stamp_ns.min() + obs.stamp_ns.max()))
+    s, s_cov = source_df(st.x[:13], getattr(st, "covariance", None), centres_of_m)
+    row = {"position": k, "srd_reported_m": float(srd_reported_m), "mid_stamp_ns": t_mid,
+           "scan_s": out["scan_duration_s"], "n_projections": obs.n_views, "adequate": out["adequate"],
+           "nominal_outcome": st.outcome, "verdict": out["verdict"],
+           "noise_floor_px": out["noise_floor"]["independent_sd"],
+           "findings": [{"term": f["term"], "magnitude": f["magnitude"], "magnitude_u": f["magnitude_u"],
+                         "unit": f["magnitude_unit"], "significance_sigma": f["significance_sigma"],
+                         "degenerate_with": f["degenerate_with"]} for f in out["findings"]],
+           "unexplained": [u["axis"] for u in out["unexplained"]],
+           "source_df_m": s.tolist(), "source_df_cov_m2": None if s_cov is None else s_cov.tolist()}
+    return row, None
+
+
+def _srd_trends(rows: list) -> list:
+    """Every term named at two or more positions: its magnitude fitted linearly against the reported SRD."""
     trends = []
     terms = sorted({f["term"] for r in rows for f in r["findings"]})
     for t in terms:
-        pts = [(r["srd_reported_m"], r["mid_stamp_ns"], f["magnitude"], f["magnitude_u"]) for r in rows
+        pts = [(r["srd_reported_m"], f["magnitude"], f["magnitude_u"]) for r in rows
                for f in r["findings"] if f["term"] == t]
         if len(pts) < 2:
             continue
         x = np.array([p[0] for p in pts])
-        m = np.array([p[2] for p in pts])
-        u = np.maximum(np.array([p[3] for p in pts]), 1e-12)
+        m = np.array([p[1] for p in pts])
+        u = np.maximum(np.array([p[2] for p in pts]), 1e-12)
         tr = {"term": t, "unit": CATALOGUE_BY_ID[t].display_unit, "n_positions": len(pts),
               "magnitudes": m.tolist(), "u": u.tolist(), "srd_reported_m": x.tolist()}
         if np.ptp(x) > 0:
@@ -611,6 +641,180 @@ def run_positions(positions: list, centres_of_m, detector: DetectorSpec, sdd_rep
             tr["u_slope_per_m_srd"] = float(np.sqrt(cov[1, 1]))
             tr["slope_significance_sigma"] = float(abs(beta[1]) / np.sqrt(cov[1, 1]))
         trends.append(tr)
-    return {"positions": rows, "trends": trends, "not_judged": skipped,
+    return trends
+
+
+# campaign-long terms: (id, components of the focal spot in {DF}, name, mechanism, degenerate_with, reveal_by)
+CAMPAIGN_TERMS = (
+    ("focal_spot_drift", (0, 1), "focal-spot drift across the beam over the campaign",
+     "the focal spot moves relative to the detector between stage positions (tube heating over the campaign, or "
+     "the panel creeping in its plane: once the stage's error motions are free per position the two are the "
+     "same), so every position's calibration puts the source elsewhere", ("detector_drift",),
+     "repeated projections of one position at the start and end of the campaign, or a fiducial fixed to the "
+     "detector (separates a source from a detector drift)"),
+    ("focal_spot_drift_axial", (2,), "source-detector distance drifting over the campaign",
+     "the focal spot (or the detector) moves along the beam between stage positions, so the calibrated "
+     "source-detector distance changes from position to position", (),
+     "repeated projections of one position at the start and end of the campaign; a temperature log of the tube "
+     "and detector mounts"),
+)
+
+
+def _gls(ys, covs, design_rows):
+    """Generalised least squares over positions: ys[k] (p,), covs[k] (p, p), design_rows[k] (p, m).
+    Returns (beta (m,), cov (m, m), chi2, fisher (m, m))."""
+    m = design_rows[0].shape[1]
+    fisher, rhs, yy = np.zeros((m, m)), np.zeros(m), 0.0
+    for y, c, a in zip(ys, covs, design_rows):
+        wi = np.linalg.inv(c)
+        fisher += a.T @ wi @ a
+        rhs += a.T @ wi @ y
+        yy += y @ wi @ y
+    cov = np.linalg.pinv(fisher)
+    beta = cov @ rhs
+    return beta, cov, float(yy - beta @ rhs), fisher
+
+
+def campaign_drift(rows: list, *, bic_threshold: float = BIC_THRESHOLD) -> dict:
+    """Campaign-long effects the per-position solves absorb (the joint model "static + error motions" with
+    campaign-long time terms, at the level of the per-position calibrations).
+
+    In that model the focal spot relative to the detector is shared by all positions (the error motions move
+    the stage). Each judged position gives it in {DF} with its covariance (its own 13-parameter solve); it is
+    fitted over the positions as constant, then linear in the campaign time ``tau = (t - t_mid) / T`` (T =
+    last - first position's mid-scan stamp; the parameters are the change between the first and the last
+    position). The linear term is named (CAMPAIGN_TERMS) when delta BIC = delta chi2 - p ln n > 10 (n: the 3K
+    coordinates), as the engine; scatter about the line beyond the uncertainties (a per-position offset, p (K - 2)
+    dof, same criterion) is reported unexplained. Detection limits at 90 % power for the worst direction.
+    Limits: a stage drift over the campaign is the error map itself (absorbed; a revisited position separates
+    it); a linear trend in time and one in SRD are one when the campaign visits the positions in SRD order.
+    """
+    use = [r for r in rows if r.get("source_df_cov_m2") is not None and r.get("mid_stamp_ns") is not None]
+    out = {"performed": False, "findings": [], "unexplained": [], "detection_limits": {}, "n_positions": len(use)}
+    if len(use) < 3:
+        out["why"] = (f"{len(use)} judged position(s) with time stamps; a campaign-long trend needs 3 (two give "
+                      "a line with no check)")
+        return out
+    t = np.array([r["mid_stamp_ns"] for r in use]) * 1e-9
+    span = float(t.max() - t.min())
+    if span <= 0:
+        out["why"] = "all positions at one instant: no time axis"
+        return out
+    tau = (t - 0.5 * (t.max() + t.min())) / span
+    srd = np.array([r["srd_reported_m"] for r in use])
+    corr = float(np.corrcoef(tau, srd)[0, 1]) if np.ptp(srd) > 0 else 0.0
+    s_um = np.array([r["source_df_m"] for r in use]) * 1e6
+    c_um = np.array([r["source_df_cov_m2"] for r in use]) * 1e12
+    ln_n = np.log(3 * len(use))
+    scan_s = float(np.median([r.get("scan_s") or 0.0 for r in use]))
+    out.update(performed=True, span_s=span, positions=[r["position"] for r in use], tau=tau.tolist(),
+               time_srd_correlation=corr, source_df_um=s_um.tolist(),
+               u_source_df_um=np.sqrt(np.maximum(np.einsum("kii->ki", c_um), 0)).tolist(),
+               method="focal spot in {DF} of each position's calibration (its covariance propagated), GLS over the "
+                      "positions: constant vs linear in campaign time; delta BIC > 10 names a campaign-long term")
+    for tid, comp, name, mech, degen, reveal in CAMPAIGN_TERMS:
+        idx = list(comp)
+        p = len(idx)
+        ys = [s[idx] for s in s_um]
+        cs = [c[np.ix_(idx, idx)] for c in c_um]
+        eye = np.eye(p)
+        _, _, chi0, _ = _gls(ys, cs, [eye] * len(use))
+        beta, cov, chi1, fisher = _gls(ys, cs, [np.hstack([eye, tk * eye]) for tk in tau])
+        d = chi0 - chi1
+        dbic = float(d - p * ln_n)
+        fb = fisher[p:, p:] - fisher[p:, :p] @ np.linalg.pinv(fisher[:p, :p]) @ fisher[:p, p:]
+        ev = float(np.linalg.eigvalsh(fb).min())
+        lam = required_noncentrality(p * ln_n + bic_threshold, p)
+        limit = float(np.sqrt(lam / ev)) if ev > 0 else None
+        sep = reveal + ("; this campaign visits the positions in SRD order, so a change with time and one with "
+                        "the stage position are the same here: revisit a position" if abs(corr) > 0.95 else "")
+        out["detection_limits"][tid] = {"limit": limit, "unit": "um over the campaign", "reveal_by": sep}
+        b, cb = beta[p:], cov[p:, p:]
+        mag = float(np.linalg.norm(b))
+        g = b / max(mag, 1e-300)
+        mag_u = float(np.sqrt(max(g @ cb @ g, 0.0)))
+        dof_s = p * (len(use) - 2)
+        entry = {"term": tid, "name": name, "mechanism": mech, "scope": "campaign",
+                 "significance_sigma": sigma_from_chi2(d, p), "delta_bic": dbic, "magnitude": mag,
+                 "magnitude_u": mag_u, "magnitude_unit": "um over the campaign",
+                 "per_scan_um": mag * scan_s / span,
+                 "parameters": [{"name": f"d{'xyz'[i]}_source_campaign", "value": float(v) * 1e-6,
+                                 "u": float(np.sqrt(cb[j, j])) * 1e-6, "unit": "m"} for j, (i, v) in
+                                enumerate(zip(idx, b))],
+                 "degenerate_with": list(degen), "correlated_with_calibrated": [],
+                 "separate_by": [sep], "scatter_chi2": chi1, "scatter_dof": dof_s}
+        if dbic >= bic_threshold:
+            out["findings"].append(entry)
+        if dof_s > 0:
+            sbic = float(chi1 - dof_s * ln_n)
+            if sbic >= bic_threshold:
+                out["unexplained"].append({"axis": f"campaign: focal spot {'xyz'[idx[0]] if p == 1 else 'x/y'} "
+                                                   "between stage positions", "significance_sigma":
+                                           sigma_from_chi2(chi1, dof_s), "delta_bic": sbic,
+                                           "chi2": chi1, "dof": dof_s})
+    out["findings"].sort(key=lambda f: -f["delta_bic"])
+    out["adequate"] = not out["findings"] and not out["unexplained"]
+    return out
+
+
+def campaign_sentence(camp: dict) -> str:
+    """One or two sentences on the campaign-long analysis (appended to a verdict)."""
+    if not camp.get("performed"):
+        return f" Campaign-long drift not judged: {camp.get('why', 'not performed')}."
+    if camp["adequate"]:
+        lim = camp["detection_limits"].get("focal_spot_drift", {}).get("limit")
+        span = camp["span_s"]
+        span = f"{span:.0f} s" if span < 120 else f"{span / 60:.0f} min" if span < 7200 else f"{span / 3600:.1f} h"
+        return (f" Over the campaign ({camp['n_positions']} positions, {span}) the focal "
+                f"spot stays put relative to the detector" + (f" (no drift across the beam above {lim:.3g} um)"
+                                                              if lim else "") + ".")
+    parts = []
+    for f in camp["findings"]:
+        alt = (" (or " + ", ".join(CATALOGUE_BY_ID[d].name for d in f["degenerate_with"]) + " over the campaign)"
+               if f["degenerate_with"] else "")
+        parts.append(f"{f['name']}{alt}: {_fmt(f['magnitude'], 'um')} between the first and last position at "
+                     f"{f['significance_sigma']:.1f} sigma (about {_fmt(f['per_scan_um'], 'um')} within one scan)")
+    parts += [f"scatter of the {u['axis']} beyond its uncertainty ({u['significance_sigma']:.1f} sigma)"
+              for u in camp["unexplained"]]
+    return " Campaign-long: " + "; ".join(parts) + "; the per-position calibrations and error motions absorb it."
+
+
+def across_positions(rows: list, skipped: list) -> dict:
+    """What run_positions returns from the judged positions' rows (trends against SRD, campaign-long terms)."""
+    rows = sorted(rows, key=lambda r: r["position"])
+    camp = campaign_drift(rows)
+    inadequate = [r["position"] for r in rows if not r["adequate"]]
+    return {"positions": rows, "trends": _srd_trends(rows), "campaign": camp, "not_judged": list(skipped),
+            "inadequate_positions": inadequate,
+            "adequate": bool(rows) and not inadequate and camp.get("adequate", True),
             "method": "per position: static solve with the 13 parameters free, then the engine; across positions: "
-                      "weighted linear fit of each repeatedly named term's magnitude against the reported SRD"}
+                      "weighted linear fit of each repeatedly named term's magnitude against the reported SRD; "
+                      "campaign: the focal spot in {DF} of every position's calibration, constant vs linear in time"}
+
+
+def run_positions(positions: list, centres_of_m, detector: DetectorSpec, sdd_reported_m: float, *,
+                  min_views: int = 8, max_terms: int = 4, progress=None, first: int = 0,
+                  given: dict | None = None) -> dict:
+    """The engine at every stage position: ``positions`` is a list of (srd_reported_m, CentreObservations),
+    numbered from ``first``; ``given``: {position: (static, run() result)} already made (e.g. the first).
+
+    Each position gets its own nominal calibration (judge_position: the stage's error motion between positions
+    is absorbed, what changes WITHIN a position's scan is not) and its own verdict. Across positions, the
+    magnitude of every term named at two or more positions is fitted linearly against the reported SRD, and
+    the focal spot of the positions' calibrations is tested for a campaign-long drift (campaign_drift).
+    Returns across_positions(): {"positions", "trends", "campaign", "not_judged", "inadequate_positions",
+    "adequate", "method"}.
+    """
+    say = progress or (lambda _m: None)
+    given = given or {}
+    rows, skipped = [], []
+    for k, (srd, obs) in enumerate(positions, start=first):
+        st, out = given.get(k, (None, None))
+        row, skip = judge_position(k, srd, obs, centres_of_m, detector, sdd_reported_m, min_views=min_views,
+                                   max_terms=max_terms, static=st, out=out)
+        if row is None:
+            skipped.append(skip)
+            continue
+        rows.append(row)
+        say(f"stage position {k + 1} (SRD {srd * 1e3:.2f} mm): {row['verdict']}")
+    return across_positions(rows, skipped)

@@ -16,6 +16,13 @@ Topic names are relative: ``--ros-args -r __ns:=/cell_a`` moves the node into ce
 Every final map (campaign complete or service request) is stored in the calibration history
 (parameter ``history_db``); at start the latest valid maps of the cell are re-published latched, and a
 map that is not SUCCESS never replaces a valid one.
+Model adequacy (issue 11): the node listens to ``ct/discrepancy/error_map`` (ct_discrepancy_node's verdict
+on every stage position of a map). A POOR_FIT verdict on the map it last published (same stamp) makes it
+re-publish that map with the motions of the positions found inadequate marked POOR_FIT (every position when
+the reference position or the campaign as a whole was found inadequate: every motion rests on them), the
+verdict in their status messages; a final map's history record is superseded by a poor_fit one (the
+original kept). Parameter ``mark_inadequate`` (false = report only). Plant software reading the motions'
+statuses then sees that the map rests on a model the data contradict.
 Restart recovery (nodes/campaign_journal.py): the accepted observations are journaled; a node killed
 mid-campaign replays them at start and solves again once the (latched) geometry arrives; the log names
 the frames it needs again (those published while it was down).
@@ -27,7 +34,7 @@ import time
 
 import numpy as np
 from builtin_interfaces.msg import Time
-from metro_msgs.msg import CtGeometry, ErrorMap, SphereObservationArray
+from metro_msgs.msg import CtGeometry, DiscrepancyReport, ErrorMap, SphereObservationArray
 from metro_msgs.srv import TriggerSolve
 from rclpy.node import Node
 
@@ -47,7 +54,10 @@ PARAMS = {
     "idle_solve_s": (5.0, "solve the last position when no observation arrived for this long [s]; 0 = never"),
     "min_frames": (1, "fewest frames of a position before it is solved [count]"),
     "loss": ("linear", "least-squares loss: linear, huber, soft_l1, cauchy, arctan"),
+    "mark_inadequate": (True, "re-publish the error map with the motions of positions ct/discrepancy/error_map "
+                              "finds inadequate marked POOR_FIT"),
 }
+POOR_FIT = 5
 MODES = ("multi", "single")
 
 
@@ -68,7 +78,12 @@ class CtErrorMotion(Node):
                                  self.bad_input.guard("ct/observations", self._on_obs), QOS_RELIABLE_STREAM)
         self.create_subscription(CtGeometry, "ct/geometry", self.bad_input.guard("ct/geometry", self._on_geometry),
                                  QOS_LATCHED)
+        self.create_subscription(DiscrepancyReport, "ct/discrepancy/error_map",
+                                 self.bad_input.guard("ct/discrepancy/error_map", self._on_discrepancy), QOS_LATCHED)
         self.create_service(TriggerSolve, "~/solve", self._on_solve)
+        self.last_pub = {m: None for m in MODES}      # mode -> (ErrorMap published last, positions of its motions)
+        self.stored_rec = {m: None for m in MODES}    # mode -> history record of the last final map stored
+        self.marks = {}                               # map stamp (sec, nanosec) -> {position: reason}
         self.create_timer(0.5, self._on_timer)
         self.history = plant.HistoryHook(self, str(self.p["history_db"]))
         self.valid = {m: None for m in MODES}         # mode -> the valid ErrorMap message published
@@ -199,12 +214,16 @@ class CtErrorMotion(Node):
                                 geometry_stamp=Time(sec=self.static_stamp_ns // 1_000_000_000,
                                                     nanosec=self.static_stamp_ns % 1_000_000_000), final=final)
             status, text = map_status({k: self.results[mode][k] for k in ks[1:]})
+            marked = self._apply_marks(msg, ks[1:])      # a verdict on this stamp arrived before (re-solve)
+            if marked:
+                status, text = "poor_fit", "found inadequate by the discrepancy engine: " + text
             if mode == "multi":
                 self.last_map_status, self.last_solve_t = (status, text), time.monotonic()
             if not final and self.valid[mode] is not None and self.valid_campaign.get(mode) == self.guard.campaign_id:
                 pass   # this campaign's final map is out: a re-solve never re-publishes a shorter, growing one
-            elif status == "success" or self.valid[mode] is None:
+            elif status == "success" or marked or self.valid[mode] is None:
                 self.pubs[mode].publish(msg)
+                self.last_pub[mode] = (msg, list(ks[1:]))
                 if status == "success" and final:
                     self.valid[mode], self.valid_campaign[mode] = msg, self.guard.campaign_id
             else:
@@ -232,8 +251,70 @@ class CtErrorMotion(Node):
         rec = error_map_record(em, mode, status=status, message=text, cell=self.history.cell, source="live",
                                inputs=yaml_inputs(files) + [upstream], campaign_id=self.guard.campaign_id, data_start_ns=min(stamps), data_end_ns=max(stamps),
                                positions=ks)
-        if self.history.store(rec, msg, MSG_TYPE) is not None:
+        stored = self.history.store(rec, msg, MSG_TYPE)
+        if stored is not None:
             self.stored_key[mode] = key
+            self.stored_rec[mode] = stored
+
+    # ------------------------------------------------------------------ model adequacy (issue 11)
+    def _apply_marks(self, msg, positions) -> bool:
+        """Mark the motions of the positions a verdict on this map's stamp found inadequate (True if any changed)."""
+        marks = self.marks.get((msg.header.stamp.sec, msg.header.stamp.nanosec))
+        if not marks:
+            return False
+        hit = False
+        for k, m in zip(positions, msg.motions):
+            why = marks.get(k, marks.get("all"))
+            if why is None or m.status.code == POOR_FIT:
+                continue                           # not found inadequate, or POOR_FIT already (a repeated verdict)
+            m.status.code = POOR_FIT
+            m.status.message = f"{m.status.message}; {why}"[:2000]
+            hit = True
+        return hit
+
+    def _on_discrepancy(self, rep):
+        """A verdict on every stage position of a map: positions found inadequate -> motions POOR_FIT."""
+        import json  # noqa: PLC0415
+
+        if not bool(self.p["mark_inadequate"]) or rep.status.code != POOR_FIT:
+            return
+        try:
+            sp = json.loads(rep.report_json)["stage_positions"]
+        except (ValueError, KeyError, TypeError) as exc:
+            self.bad_input.report("ct/discrepancy/error_map", f"report_json without stage_positions: {exc}")
+            return
+        marks = {}
+        for r in sp.get("positions", []):
+            if not r.get("adequate", True):
+                marks[int(r["position"])] = (f"model inadequate at stage position {int(r['position']) + 1} "
+                                             f"(discrepancy engine): {r.get('verdict', '')}")
+        if 0 in marks:
+            marks["all"] = "the reference position's model was found inadequate: " + marks.pop(0)
+        if not sp.get("campaign", {}).get("adequate", True):
+            marks["all"] = "model inadequate over the campaign (discrepancy engine): " + rep.verdict
+        if not marks:
+            return
+        stamp = (rep.header.stamp.sec, rep.header.stamp.nanosec)
+        self.marks[stamp] = marks
+        for mode in MODES:
+            last = self.last_pub[mode]
+            if last is None or (last[0].header.stamp.sec, last[0].header.stamp.nanosec) != stamp:
+                continue                           # a verdict on another map
+            msg, positions = last
+            if not self._apply_marks(msg, positions):
+                continue
+            if self.valid[mode] is msg:
+                self.valid[mode] = None
+            self.pubs[mode].publish(msg)
+            if mode == "multi":
+                self.last_map_status = ("poor_fit", rep.status.message)
+            rec = self.stored_rec[mode]
+            if rec is not None and rec.data_end_ns == stamp[0] * 1_000_000_000 + stamp[1]:
+                self.history.supersede(rec, "poor_fit", rep.status.message[:2000], msg=msg, type_name=MSG_TYPE,
+                                       extra={"verdict": str(rep.verdict), "positions_marked": sorted(
+                                           str(k) for k in marks)})
+            self.get_logger().error(f"{mode} error map of stamp {stamp[0]} s: motions marked POOR_FIT "
+                                    f"({', '.join(str(k) for k in marks)}): {rep.verdict}")
 
     def diagnose(self):
         values = {"observation messages": self.obs_rate.total, "observation rate [1/s]": self.obs_rate.rate(),
