@@ -200,8 +200,9 @@ class DetectionSettings:
     snap_deg : float
         Local background orientations within this of a pixel axis are snapped to it.
     snap_sigma : float
-        A window's orientation within this many standard deviations of its own noise of the
-        frame's dominant orientation is replaced by the frame's (0 = off).
+        A window's orientation is drawn towards the frame's dominant orientation with a weight
+        that falls smoothly with their difference in sd of the window's own noise, to one half at
+        this many sd (see ``_blend_direction``; 0 = off).
     edge_spread_px : float or None
         Sd of the detector's edge spread (blur and pixel aperture) for the blur correction of
         edge points on a background gradient (see :func:`_edge_spread2`); None estimates it per
@@ -233,6 +234,10 @@ class DetectionSettings:
         Largest rms misfit of the corner background model on the annulus, in units of the
         pixel noise there, for a ``background_structure`` shadow to be measured on it
         (``_corner_pass``); None disables the corner model.
+    band_core : bool
+        A blob piece refused as merged whose largest inscribed disk holds all of its depth (the
+        rest shallower than half of it: a piece of a thin band, see ``_band_merged_core``) is
+        screened again as that disk (False: refused, the former behaviour).
     background_edge_sigma_px : float
         A fixed extra sd [px] across the structure for those shadows (0 = off; the former
         default 0.012 px was calibrated on the simulator's carbon tube).
@@ -269,6 +274,7 @@ class DetectionSettings:
     max_corner_misfit: float | None = 1.5
     edge_spread_px: float | None = None
     snap_sigma: float = 4.0
+    band_core: bool = True
 
     def __post_init__(self):
         if self.ellipse_fitter not in ("fitEllipse", "fitEllipseAMS", "fitEllipseDirect", "geometric"):
@@ -970,7 +976,7 @@ def _candidates(trans, bg, st, drange, rej):
         if blob is None:
             blob = labels[y0:y0 + h, x0:x0 + w] == lab + 1
         if de < dmin:
-            if not piece:
+            if not piece or piece == "core":
                 rej.add((cx, cy), a, "not_a_sphere_size", f"diameter {de:.1f} px < {dmin:.1f} px")
             continue
         why = None
@@ -1000,6 +1006,12 @@ def _candidates(trans, bg, st, drange, rej):
         if why is None:
             cand.append((k - 1, (cx, cy), 0.5 * de, a))
             continue
+        if piece is True and why[0] == "overlap" and st.band_core:
+            core = _band_merged_core(blob, ratio[y0:y0 + h, x0:x0 + w], x0, y0, st.exclusion_px)
+            if core is not None:         # a shadow with a piece of a band: screen its round core instead
+                pieces[next(i for i, p in enumerate(pieces) if p is work[k - 1])] = core
+                work.append(core)
+                continue
         if not piece and np.isfinite(dmax):
             op = cv2.morphologyEx(blob.view(np.uint8), cv2.MORPH_OPEN, disk)
             n2, lab2, st2, ce2 = cv2.connectedComponentsWithStats(op, connectivity=8)
@@ -1053,6 +1065,34 @@ def _candidates(trans, bg, st, drange, rej):
                        area=kp[:, 3].copy(), shadows=shadows)
 
 
+def _band_merged_core(blob, ratio, x0, y0, margin):
+    """The round core of a blob piece refused as merged: the largest disk inside it, if all of the
+    piece beyond that disk + ``margin`` (the shadow's blurred rim, ``exclusion_px``) is shallower
+    than half the disk's depth.
+
+    A sphere shadow crossed by a thin dark band that the segmentation closings did not keep
+    (a tube wall tilted between their directions) stays joined, after the opening, to a bump of
+    the band; two shadows joined by their rims leave a second deep region beyond the disk.
+    Returns a work item like the pieces' (stats, centroid, disk mask, "core", -1), or None."""
+    pad = np.pad(blob.view(np.uint8), 1)
+    dist = cv2.distanceTransform(pad, cv2.DIST_L2, 5)[1:-1, 1:-1]
+    r_in = float(dist.max())
+    if r_in < 2.0:
+        return None
+    iy, ix = np.unravel_index(int(np.argmax(dist)), dist.shape)
+    yy, xx = np.mgrid[0:blob.shape[0], 0:blob.shape[1]]
+    d2 = (xx - ix) ** 2 + (yy - iy) ** 2
+    disk = blob & (d2 <= r_in * r_in)
+    rest = blob & (d2 > (r_in + margin) ** 2)
+    depth_core = 1.0 - float(ratio[disk].min())
+    if np.any(rest) and 1.0 - float(ratio[rest].min()) >= 0.5 * depth_core:
+        return None
+    ys, xs = np.nonzero(disk)
+    ya, yb, xa, xb = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+    return (np.array([x0 + xa, y0 + ya, xb - xa, yb - ya, ys.size]),
+            np.array([x0 + xs.mean(), y0 + ys.mean()]), disk[ya:yb, xa:xb], "core", -1)
+
+
 # --------------------------------------------------------------------------- stage 4: local background
 
 @dataclass
@@ -1070,6 +1110,7 @@ class _LocalBackground:
     coherence: np.ndarray   # (C,)
     minor: np.ndarray       # (C,) gradient energy along the structure / the noise's
     corner: tuple | None = None  # per candidate a _CornerModel whose grad marks background edges
+    direction_evidence: np.ndarray | None = None  # (C,) |theta - frame's| / sd (see _blend_direction)
 
 
 def _local_backgrounds(trans, bg, cand, st):
@@ -1116,9 +1157,10 @@ def _local_backgrounds(trans, bg, cand, st):
     n_keep = np.maximum(np.count_nonzero(keep, axis=(1, 2)), 1)
     minor = 0.5 * (jxx + jyy - root) / (2.0 * cand.noise ** 2 * n_keep)
     snap = np.deg2rad(st.snap_deg)
+    evidence = np.full(nc, np.inf)
     if st.snap_sigma and nc > 1:
-        # a window whose direction is within snap_sigma sd of its own noise of the frame's
-        # dominant direction (the summed tensor of every window) takes the frame's: weak
+        # a window's direction is drawn towards the frame's dominant direction (the summed tensor
+        # of every window) the more, the less it differs from it in sd of its own noise: weak
         # structure in a small window gives a noisy direction, and a grid turned by noise samples
         # a sharp band between pixels (bilinear) where the profiles see it otherwise, which
         # biases the centre. The noise of the off-diagonal term across the structure,
@@ -1126,19 +1168,17 @@ def _local_backgrounds(trans, bg, cand, st):
         # anisotropy gives the sd of 2 theta.
         s2n = np.asarray(cand.noise, np.float64) ** 2 * np.ones(nc)
         sd_theta = 0.5 * np.sqrt(2.0 * s2n * (jxx + jyy) + 4.0 * s2n ** 2 * n_keep) / np.maximum(root, 1e-30)
-        # the frame's direction counts only when the frame has one: its own sd (the same noise
-        # model over the summed tensor) below FRAME_DIRECTION_SD. A frame without background
-        # structure (no holder in the beam) has a direction drawn by the noise, and snapping every
-        # window to it moved centres by up to 1 sd from one estimate of it to the next (a crop of
-        # the frame against the whole frame, tests/ct_imaging/test_track.py no_tube).
+        # the frame's direction counts only as far as the frame has one: its own sd (the same
+        # noise model over the summed tensor) well below FRAME_DIRECTION_SD. A frame without
+        # background structure (no holder in the beam) has a direction drawn by the noise, and
+        # drawing every window to it moved centres by up to 1 sd from one estimate of it to the next
+        # (a crop of the frame against the whole frame, tests/ct_imaging/test_track.py no_tube).
         jf = np.array([jxx.sum(), jyy.sum(), jxy.sum()])
         root_f = np.sqrt((jf[0] - jf[1]) ** 2 + 4 * jf[2] ** 2)
         sd_f = 0.5 * np.sqrt(2.0 * s2n[0] * (jf[0] + jf[1]) + 4.0 * s2n[0] ** 2 * n_keep.sum()) / max(root_f, 1e-30)
-        tf = 0.5 * np.arctan2(2 * jf[2], jf[0] - jf[1]) if sd_f < FRAME_DIRECTION_SD else np.nan
-        cand.frame_direction = float(tf)
-        if np.isfinite(tf):
-            d_f = np.abs((theta - tf + 0.5 * np.pi) % np.pi - 0.5 * np.pi)
-            theta = np.where(d_f < st.snap_sigma * sd_theta, tf, theta)
+        tf = 0.5 * np.arctan2(2 * jf[2], jf[0] - jf[1])
+        theta, evidence = _blend_direction(theta, sd_theta, tf, sd_f, st.snap_sigma)
+        cand.frame_direction = float(tf) if sd_f < FRAME_DIRECTION_SD else float("nan")
     q = np.round(theta / (0.5 * np.pi)) * (0.5 * np.pi)
     snapped = np.abs(theta - q) < snap
     theta = np.where(snapped, q, theta)
@@ -1188,7 +1228,27 @@ def _local_backgrounds(trans, bg, cand, st):
     ap = np.pad(a, ((0, 0), (2, 2)), mode="edge")
     grad = np.abs(ap[:, 4:] - ap[:, :-4]) / np.maximum(a, 1e-6)
     return _LocalBackground(origin=origin, eu=eu, ev=ev, umin=-U, a=a.astype(np.float64), b=b.astype(np.float64),
-                            edge_gradient=grad, structure=structure, coherence=coh, minor=minor), hot
+                            edge_gradient=grad, structure=structure, coherence=coh, minor=minor,
+                            direction_evidence=evidence), hot
+
+
+def _blend_direction(theta, sd_theta, tf, sd_f, k):
+    """Window directions ``theta`` (sd ``sd_theta``) drawn towards the frame's ``tf`` (sd ``sd_f``).
+
+    With t = |theta - tf| / sd_theta (mod pi) the evidence that a window's structure differs from
+    the frame's, the window keeps the weight ``w = t^4 / (t^4 + k^4)`` of its own difference
+    (half at t = k; 0.06 at k / 2, 0.94 at 2 k), times ``g = 1 / (1 + (sd_f /
+    FRAME_DIRECTION_SD)^4)``, how far the frame has a direction at all:
+    ``theta' = tf + (1 - (1 - w) g) (theta - tf)``. Both weights are smooth, so the direction (and
+    the centre measured on the grid turned by it) is a continuous function of the data; the
+    former hard switch at t = k moved a centre by ~0.4 of its sd when the decision flipped.
+    d(theta' - tf)/dt <= 1.6 sd_theta. Returns (theta', t)."""
+    d = (theta - tf + 0.5 * np.pi) % np.pi - 0.5 * np.pi
+    t = np.abs(d) / np.maximum(sd_theta, 1e-30)
+    t4 = np.minimum(t, 1e6) ** 4
+    w = t4 / (t4 + float(k) ** 4)
+    g = 1.0 / (1.0 + (sd_f / FRAME_DIRECTION_SD) ** 4)
+    return tf + (1.0 - (1.0 - w) * g) * d, t
 
 
 def _line_fit(s, w, v):
