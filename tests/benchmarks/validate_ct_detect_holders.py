@@ -208,6 +208,10 @@ def main():
                    "bias_px": e.mean(axis=0).round(4).tolist() if len(e) else None,
                    "sd_px": e.std(axis=0).round(4).tolist() if len(e) else None,
                    "robust_z": rz.round(2).tolist() if m != "textbook" else None,
+                   # gross errors: shadows measured far outside their reported sd
+                   "max_abs_z": round(float(np.abs(z).max()), 2) if m != "textbook" and len(z) else None,
+                   "n_abs_z_gt_4": int(np.sum(np.abs(z).max(axis=1) > 4)) if m != "textbook" else None,
+                   "max_abs_err_px": round(float(np.abs(e).max()), 4) if len(e) else None,
                    "ms_per_frame": round(1e3 * q["t"] / q["n_frames"], 1)}
             if "missed_by_reason" in q:
                 row["missed_by_reason"] = q["missed_by_reason"]

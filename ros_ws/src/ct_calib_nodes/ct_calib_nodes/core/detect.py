@@ -201,8 +201,9 @@ class DetectionSettings:
         Local background orientations within this of a pixel axis are snapped to it.
     snap_sigma : float
         A window's orientation is drawn towards the frame's dominant orientation with a weight
-        that falls smoothly with their difference in sd of the window's own noise, to one half at
-        this many sd (see ``_blend_direction``; 0 = off).
+        that falls smoothly with their difference in sd of the window's own noise: wholly within
+        half this many sd, not at all beyond 1.5 times, one half at this many (see
+        ``_blend_direction``; 0 = off).
     edge_spread_px : float or None
         Sd of the detector's edge spread (blur and pixel aperture) for the blur correction of
         edge points on a background gradient (see :func:`_edge_spread2`); None estimates it per
@@ -1236,17 +1237,17 @@ def _blend_direction(theta, sd_theta, tf, sd_f, k):
     """Window directions ``theta`` (sd ``sd_theta``) drawn towards the frame's ``tf`` (sd ``sd_f``).
 
     With t = |theta - tf| / sd_theta (mod pi) the evidence that a window's structure differs from
-    the frame's, the window keeps the weight ``w = t^4 / (t^4 + k^4)`` of its own difference
-    (half at t = k; 0.06 at k / 2, 0.94 at 2 k), times ``g = 1 / (1 + (sd_f /
-    FRAME_DIRECTION_SD)^4)``, how far the frame has a direction at all:
-    ``theta' = tf + (1 - (1 - w) g) (theta - tf)``. Both weights are smooth, so the direction (and
-    the centre measured on the grid turned by it) is a continuous function of the data; the
+    the frame's, the window keeps the weight w(t) of its own difference: 0 up to t = k / 2, 1 from
+    3 k / 2 on, a smooth step (3 x^2 - 2 x^3, x = (t - k / 2) / k) between; times ``g = 1 / (1 +
+    (sd_f / FRAME_DIRECTION_SD)^4)``, how far the frame has a direction at all:
+    ``theta' = tf + (1 - (1 - w) g) (theta - tf)``. Both weights are continuous, so the direction
+    (and the centre measured on the grid turned by it) is a continuous function of the data; the
     former hard switch at t = k moved a centre by ~0.4 of its sd when the decision flipped.
-    d(theta' - tf)/dt <= 1.6 sd_theta. Returns (theta', t)."""
+    |d(theta' - tf)/dt| <= 2.3 sd_theta. Returns (theta', t)."""
     d = (theta - tf + 0.5 * np.pi) % np.pi - 0.5 * np.pi
     t = np.abs(d) / np.maximum(sd_theta, 1e-30)
-    t4 = np.minimum(t, 1e6) ** 4
-    w = t4 / (t4 + float(k) ** 4)
+    x = np.clip((t - 0.5 * k) / k, 0.0, 1.0)
+    w = x * x * (3.0 - 2.0 * x)
     g = 1.0 / (1.0 + (sd_f / FRAME_DIRECTION_SD) ** 4)
     return tf + (1.0 - (1.0 - w) * g) * d, t
 
