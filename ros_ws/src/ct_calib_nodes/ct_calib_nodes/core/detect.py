@@ -26,13 +26,16 @@ Pipeline (one named function per stage; numbers are the defaults of
    large, elongated or not elliptical, or a neighbour closer than 4 px, whose
    penumbra would bias the edge). A blob refused as merged is first split by a
    binary opening with a disk of 0.8 x the smallest shadow (a sphere on a band,
-   two shadows joined by their rims) and the pieces screened. Overlapping
-   shadows are rejected, never split into two fits.
+   two shadows joined by their rims) and the pieces screened. A piece still
+   refused as merged whose largest inscribed disk holds all its depth (the rest
+   shallower than half of it: a bump of a thin band) is screened as that disk
+   (``band_core``). Overlapping shadows are rejected, never split into two fits.
 4. Local background per shadow, ``_local_backgrounds``: the direction of the
    strongest structure round the shadow from the structure tensor of the
-   frame's gradients off the shadows (snapped to the pixel axes within
-   1.5 deg); on a grid turned to it, every line across the shadow is fitted by
-   a straight line along the structure through the samples outside the shadow
+   frame's gradients off the shadows, replaced by the frame's dominant
+   direction if within ``snap_sigma`` sd of its own noise of it
+   (``_blend_direction``), then snapped to the pixel axes within 1.5 deg; on a
+   grid turned to it, every line across the shadow is fitted by a straight line along the structure through the samples outside the shadow
    (radius + 3 px; other shadows masked; samples 4 noise sd below the first fit
    dropped), so steps and bands of any orientation through the shadow and any
    smooth gradient (heel effect, vignetting) are interpolated across it. Hot
@@ -200,10 +203,12 @@ class DetectionSettings:
     snap_deg : float
         Local background orientations within this of a pixel axis are snapped to it.
     snap_sigma : float
-        A window's orientation is drawn towards the frame's dominant orientation with a weight
-        that falls smoothly with their difference in sd of the window's own noise: wholly within
-        half this many sd, not at all beyond 1.5 times, one half at this many (see
-        ``_blend_direction``; 0 = off).
+        A window's orientation within this many standard deviations of its own noise of the
+        frame's dominant orientation is replaced by the frame's (0 = off; see ``_blend_direction``).
+    direction_blend : bool
+        Instead of that hard switch, a smooth blend (the frame's wholly within ``snap_sigma`` / 2
+        sd, the window's own beyond 1.5 ``snap_sigma``): no jump where the decision flips, but
+        more windows move a little when the evidence changes (``_blend_direction``).
     edge_spread_px : float or None
         Sd of the detector's edge spread (blur and pixel aperture) for the blur correction of
         edge points on a background gradient (see :func:`_edge_spread2`); None estimates it per
@@ -276,6 +281,7 @@ class DetectionSettings:
     edge_spread_px: float | None = None
     snap_sigma: float = 4.0
     band_core: bool = True
+    direction_blend: bool = False
 
     def __post_init__(self):
         if self.ellipse_fitter not in ("fitEllipse", "fitEllipseAMS", "fitEllipseDirect", "geometric"):
@@ -1160,8 +1166,8 @@ def _local_backgrounds(trans, bg, cand, st):
     snap = np.deg2rad(st.snap_deg)
     evidence = np.full(nc, np.inf)
     if st.snap_sigma and nc > 1:
-        # a window's direction is drawn towards the frame's dominant direction (the summed tensor
-        # of every window) the more, the less it differs from it in sd of its own noise: weak
+        # a window's direction within snap_sigma sd of its own noise of the frame's dominant
+        # direction (the summed tensor of every window) takes the frame's: weak
         # structure in a small window gives a noisy direction, and a grid turned by noise samples
         # a sharp band between pixels (bilinear) where the profiles see it otherwise, which
         # biases the centre. The noise of the off-diagonal term across the structure,
@@ -1169,16 +1175,16 @@ def _local_backgrounds(trans, bg, cand, st):
         # anisotropy gives the sd of 2 theta.
         s2n = np.asarray(cand.noise, np.float64) ** 2 * np.ones(nc)
         sd_theta = 0.5 * np.sqrt(2.0 * s2n * (jxx + jyy) + 4.0 * s2n ** 2 * n_keep) / np.maximum(root, 1e-30)
-        # the frame's direction counts only as far as the frame has one: its own sd (the same
-        # noise model over the summed tensor) well below FRAME_DIRECTION_SD. A frame without
+        # the frame's direction counts only when the frame has one: its own sd (the same
+        # noise model over the summed tensor) below FRAME_DIRECTION_SD. A frame without
         # background structure (no holder in the beam) has a direction drawn by the noise, and
-        # drawing every window to it moved centres by up to 1 sd from one estimate of it to the next
+        # snapping every window to it moved centres by up to 1 sd from one estimate of it to the next
         # (a crop of the frame against the whole frame, tests/ct_imaging/test_track.py no_tube).
         jf = np.array([jxx.sum(), jyy.sum(), jxy.sum()])
         root_f = np.sqrt((jf[0] - jf[1]) ** 2 + 4 * jf[2] ** 2)
         sd_f = 0.5 * np.sqrt(2.0 * s2n[0] * (jf[0] + jf[1]) + 4.0 * s2n[0] ** 2 * n_keep.sum()) / max(root_f, 1e-30)
         tf = 0.5 * np.arctan2(2 * jf[2], jf[0] - jf[1])
-        theta, evidence = _blend_direction(theta, sd_theta, tf, sd_f, st.snap_sigma)
+        theta, evidence = _blend_direction(theta, sd_theta, tf, sd_f, st.snap_sigma, st.direction_blend)
         cand.frame_direction = float(tf) if sd_f < FRAME_DIRECTION_SD else float("nan")
     q = np.round(theta / (0.5 * np.pi)) * (0.5 * np.pi)
     snapped = np.abs(theta - q) < snap
@@ -1233,19 +1239,24 @@ def _local_backgrounds(trans, bg, cand, st):
                             direction_evidence=evidence), hot
 
 
-def _blend_direction(theta, sd_theta, tf, sd_f, k):
+def _blend_direction(theta, sd_theta, tf, sd_f, k, smooth=False):
     """Window directions ``theta`` (sd ``sd_theta``) drawn towards the frame's ``tf`` (sd ``sd_f``).
 
-    With t = |theta - tf| / sd_theta (mod pi) the evidence that a window's structure differs from
-    the frame's, the window keeps the weight w(t) of its own difference: 0 up to t = k / 2, 1 from
-    3 k / 2 on, a smooth step (3 x^2 - 2 x^3, x = (t - k / 2) / k) between; times ``g = 1 / (1 +
-    (sd_f / FRAME_DIRECTION_SD)^4)``, how far the frame has a direction at all:
-    ``theta' = tf + (1 - (1 - w) g) (theta - tf)``. Both weights are continuous, so the direction
-    (and the centre measured on the grid turned by it) is a continuous function of the data; the
-    former hard switch at t = k moved a centre by ~0.4 of its sd when the decision flipped.
-    |d(theta' - tf)/dt| <= 2.3 sd_theta. Returns (theta', t)."""
+    t = |theta - tf| / sd_theta (mod pi) is the evidence that a window's structure differs from
+    the frame's. Default (hard): a window with t < k takes the frame's direction, if the frame has
+    one (sd_f < FRAME_DIRECTION_SD), else it keeps its own. ``smooth``: the window keeps the
+    weight w(t) of its own difference, 0 up to t = k / 2, 1 from 3 k / 2 on, a smooth step
+    (3 x^2 - 2 x^3, x = (t - k / 2) / k) between, times ``g = 1 / (1 + (sd_f /
+    FRAME_DIRECTION_SD)^4)`` for how far the frame has a direction: ``theta' = tf + (1 - (1 - w)
+    g) (theta - tf)``, a continuous function of the data, |d(theta' - tf)/dt| <= 2.3 sd_theta.
+    The hard rule moves a centre by ~0.4-0.6 sd where its decision flips; the smooth one moves
+    every window with k / 2 < t < 3 k / 2 a little whenever t changes, which for weakly structured
+    windows (sd_theta 10-20 deg) turns their grid by degrees (doc/ct_detect.md: measured worse
+    between a crop and its whole frame). Returns (theta', t)."""
     d = (theta - tf + 0.5 * np.pi) % np.pi - 0.5 * np.pi
     t = np.abs(d) / np.maximum(sd_theta, 1e-30)
+    if not smooth:
+        return np.where((t < k) & (sd_f < FRAME_DIRECTION_SD), tf, theta), t
     x = np.clip((t - 0.5 * k) / k, 0.0, 1.0)
     w = x * x * (3.0 - 2.0 * x)
     g = 1.0 / (1.0 + (sd_f / FRAME_DIRECTION_SD) ** 4)
