@@ -1016,7 +1016,11 @@ def _candidates(trans, bg, st, drange, rej):
         if piece is True and why[0] == "overlap" and st.band_core:
             core = _band_merged_core(blob, ratio[y0:y0 + h, x0:x0 + w], x0, y0, st.exclusion_px)
             if core is not None:         # a shadow with a piece of a band: screen its round core instead
-                pieces[next(i for i, p in enumerate(pieces) if p is work[k - 1])] = core
+                # (the proximity rule sees the core's centre and size; the shadow mask keeps the
+                # whole piece, as before, so that the neighbours' backgrounds do not change)
+                s0 = s_.copy()
+                s0[4] = core[0][4]
+                pieces[next(i for i, p in enumerate(pieces) if p is work[k - 1])] = (s0, core[1], blob, True, -1)
                 work.append(core)
                 continue
         if not piece and np.isfinite(dmax):
