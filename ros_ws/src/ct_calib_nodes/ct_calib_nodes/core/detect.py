@@ -35,10 +35,11 @@ Pipeline (one named function per stage; numbers are the defaults of
    frame's gradients off the shadows, replaced by the frame's dominant
    direction if within ``snap_sigma`` sd of its own noise of it
    (``_blend_direction``), then snapped to the pixel axes within 1.5 deg; on a
-   grid turned to it, every line across the shadow is fitted by a straight line along the structure through the samples outside the shadow
-   (radius + 3 px; other shadows masked; samples 4 noise sd below the first fit
-   dropped), so steps and bands of any orientation through the shadow and any
-   smooth gradient (heel effect, vignetting) are interpolated across it. Hot
+   grid turned to it, every line across the shadow is fitted by a straight line
+   along the structure through the samples outside the shadow (radius + 3 px;
+   other shadows masked; samples 4 noise sd below the first fit dropped), so
+   steps and bands of any orientation through the shadow and any smooth
+   gradient (heel effect, vignetting) are interpolated across it. Hot
    and dead pixels in these windows (beyond all 8 neighbours by 6 noise sd)
    are replaced by their neighbours' mean and counted.
 5. Sub-pixel edges, ``_edge_points``: ``n_rays`` radial profiles from the
@@ -1170,8 +1171,8 @@ def _local_backgrounds(trans, bg, cand, st):
     snap = np.deg2rad(st.snap_deg)
     evidence = np.full(nc, np.inf)
     if st.snap_sigma and nc > 1:
-        # a window's direction within snap_sigma sd of its own noise of the frame's dominant
-        # direction (the summed tensor of every window) takes the frame's: weak
+        # a window whose direction is within snap_sigma sd of its own noise of the frame's
+        # dominant direction (the summed tensor of every window) takes the frame's: weak
         # structure in a small window gives a noisy direction, and a grid turned by noise samples
         # a sharp band between pixels (bilinear) where the profiles see it otherwise, which
         # biases the centre. The noise of the off-diagonal term across the structure,
@@ -1179,11 +1180,11 @@ def _local_backgrounds(trans, bg, cand, st):
         # anisotropy gives the sd of 2 theta.
         s2n = np.asarray(cand.noise, np.float64) ** 2 * np.ones(nc)
         sd_theta = 0.5 * np.sqrt(2.0 * s2n * (jxx + jyy) + 4.0 * s2n ** 2 * n_keep) / np.maximum(root, 1e-30)
-        # the frame's direction counts only when the frame has one: its own sd (the same
-        # noise model over the summed tensor) below FRAME_DIRECTION_SD. A frame without
-        # background structure (no holder in the beam) has a direction drawn by the noise, and
-        # snapping every window to it moved centres by up to 1 sd from one estimate of it to the next
-        # (a crop of the frame against the whole frame, tests/ct_imaging/test_track.py no_tube).
+        # the frame's direction counts only when the frame has one: its own sd (the same noise
+        # model over the summed tensor) below FRAME_DIRECTION_SD. A frame without background
+        # structure (no holder in the beam) has a direction drawn by the noise, and snapping every
+        # window to it moved centres by up to 1 sd from one estimate of it to the next (a crop of
+        # the frame against the whole frame, tests/ct_imaging/test_track.py no_tube).
         jf = np.array([jxx.sum(), jyy.sum(), jxy.sum()])
         root_f = np.sqrt((jf[0] - jf[1]) ** 2 + 4 * jf[2] ** 2)
         sd_f = 0.5 * np.sqrt(2.0 * s2n[0] * (jf[0] + jf[1]) + 4.0 * s2n[0] ** 2 * n_keep.sum()) / max(root_f, 1e-30)
