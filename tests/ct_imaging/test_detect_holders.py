@@ -82,3 +82,38 @@ def test_accuracy_and_uncertainty_on_other_holders(holder_results):
         assert np.all(np.abs(e.mean(axis=0)) < 3 * e.std(axis=0) / np.sqrt(len(e)) + 0.003), enc
         assert np.all(e.std(axis=0) < (0.015 if enc == "mono16" else 0.03)), enc
         assert np.all(rz > 0.6) and np.all(rz < 1.6), (enc, rz)
+
+
+def test_spheres_merged_with_a_tilted_wall_band_are_found():
+    """A tube tilted by -30 deg: where a sphere's shadow touches the wall band's dark inner edge,
+    which the six segmentation closings do not keep at this tilt, the two stay joined after the
+    opening (a bump of the band on the disk) and were refused as ``overlap``. Their round core
+    (``band_core``) is screened and measured instead: every expected sphere but a tube-rim corner
+    is found, without false detections, the newly found within 4 sd and 0.05 px of the truth."""
+    w = default_static_truth(0.364)
+    w[12] += np.deg2rad(-30.13)
+    rs = RenderSettings(poisson=False, ellipse_centre_bias=False, blur_sigma_px=0.77, touch_gap_px=4.0)
+    fr = render_projection(w, np.zeros(6), np.deg2rad(268.07), helix49(), DET, rs, output="transmission")
+    flat = H.FlatField(heel=0.10, heel_angle_rad=1.29, vignetting=0.30, field_stop_radius_px=STOP_R)
+    img = H.finish_frame(fr.image, i0=50000.0, flat=flat, rng=np.random.default_rng(5), output="mono16")
+    tr = fr.truth
+    rho = np.hypot(tr.centre_px[:, 0] - 511.5, tr.centre_px[:, 1] - 511.5)
+    expected = set(np.nonzero(tr.usable & (rho + tr.semi_axes_px[:, 0] + 6 < STOP_R))[0].tolist())
+    found = {}
+    for core in (True, False):
+        det = detect.detect_spheres(img, diameter_px_range=DRANGE, settings=detect.DetectionSettings(band_core=core))
+        d = np.linalg.norm(det.centre_px[:, None] - tr.centre_px[None], axis=2)
+        j = d.argmin(axis=1)
+        assert np.all(d[np.arange(len(j)), j] < 0.5), "false detection"
+        found[core] = (det, j)
+    det, j = found[True]
+    det0, j0 = found[False]
+    missed = expected - set(j.tolist())
+    print(f"{len(expected)} expected, found {len(expected) - len(missed)} (without the cores "
+          f"{len(expected - set(j0.tolist()))} missed, {det0.rejected.count('overlap')} overlaps)")
+    assert len(missed) <= 1                           # a tube-rim corner (background_structure)
+    new = [i for i, jj in enumerate(j) if jj not in set(j0.tolist())]
+    assert len(new) >= 3                              # 4 band-merged spheres in this frame
+    for i in new:
+        e = det.centre_px[i] - tr.centre_px[j[i]]
+        assert np.all(np.abs(e) < 0.05) and np.all(np.abs(e) < 4 * det.centre_std_px[i]), (e, det.centre_std_px[i])
