@@ -107,7 +107,10 @@ def _tracker(proc, settings):
 
 
 def _decode_detect(proc, tracker, data, srd, key):
-    """(detections or None, problem or None, decode s, detect s) of one frame's CDR bytes or message."""
+    """One frame's CDR bytes or Image message -> (detections or None, problem or None, decode s,
+    detect s, detection mode). The mode is 'full', 'window' or 'fallback' with windowed detection
+    (``tracker``, ``key``: does a block start here), None without it or when the frame did not
+    reach detection."""
     from ct_calib_nodes.io.raw_replay import ImageView  # noqa: PLC0415
 
     c0 = time.process_time()
@@ -115,47 +118,26 @@ def _decode_detect(proc, tracker, data, srd, key):
         msg = ImageView.from_cdr(data) if isinstance(data, (bytes, bytearray, memoryview)) else data
         image, enc = array_from_image(msg, (proc.detector.rows, proc.detector.cols))
     except (MessageError, ValueError) as exc:
-        return None, str(exc), time.process_time() - c0, 0.0
+        return None, str(exc), time.process_time() - c0, 0.0, None
     c1 = time.process_time()
+    before = dict(tracker.counts) if tracker is not None else {}
     try:
         if tracker is None:
             det = proc.detect(image, enc, srd)
         else:
             det = tracker.detect(image, enc, proc.diameter_range_px(srd), key=key)
     except FrameError as exc:
-        return None, str(exc), c1 - c0, time.process_time() - c1
-    return det, None, c1 - c0, time.process_time() - c1
-
-
-def _worker_detect_tracked(task):
-    """(stamp, CDR bytes, srd, key frame?) -> ``_decode_detect``'s result and the detection mode
-    ('full', 'window', 'fallback'; None when the frame did not reach detection). Frames of a block
-    come in order to the same worker (its tracker carries the previous frame's shadows)."""
-    _t, data, srd, key = task
-    tracker = _WORKER["track"]
-    before = dict(tracker.counts)
-    res = _decode_detect(_WORKER["proc"], tracker, data, srd, key)
+        return None, str(exc), c1 - c0, time.process_time() - c1, None
     mode = next((k for k in before if tracker.counts[k] != before[k]), None)
-    return (*res, mode)
+    return det, None, c1 - c0, time.process_time() - c1, mode
 
 
 def _worker_detect(task):
-    """(stamp, CDR bytes of the Image, srd) -> (detections or None, problem or None, decode s, detect s)."""
-    from ct_calib_nodes.io.raw_replay import ImageView  # noqa: PLC0415
-
-    _t, data, srd = task
-    proc = _WORKER["proc"]
-    c0 = time.process_time()
-    try:
-        image, enc = array_from_image(ImageView.from_cdr(data), (proc.detector.rows, proc.detector.cols))
-    except (MessageError, ValueError) as exc:
-        return None, str(exc), time.process_time() - c0, 0.0
-    c1 = time.process_time()
-    try:
-        det = proc.detect(image, enc, srd)
-    except FrameError as exc:
-        return None, str(exc), c1 - c0, time.process_time() - c1
-    return det, None, c1 - c0, time.process_time() - c1
+    """(stamp, CDR bytes of the Image, srd, key frame?) in a worker process -> ``_decode_detect``'s
+    result. With windowed detection the frames of a block come in order to the same worker (its
+    tracker carries the previous frame's shadows)."""
+    _t, data, srd, key = task
+    return _decode_detect(_WORKER["proc"], _WORKER["track"], data, srd, key)
 
 
 def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: str = "linear",
@@ -205,11 +187,6 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
             block["srd"], block["n"] = srd, 0
         block["n"] += 1
         return block["n"] == 1
-
-    def add_modes(c):
-        for k, v in c.items():
-            out.detection_modes[k] += v
-    shape = (instrument.detector.rows, instrument.detector.cols)
 
     def take(results):
         for fr in results:
@@ -290,63 +267,44 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
                 stages[t] = msg
             yield t
 
-    if workers <= 1 and track is not None:
-        tracker = _tracker(proc, track)
-        for t in messages(raw=False):
+    def detected(t, alpha, srd, res):
+        """A frame's ``_decode_detect`` result, taken in recording order: identity, accumulation."""
+        det, problem, c_dec, c_det, mode = res
+        clock.add("decode", c_dec)
+        clock.add("detect", c_det)
+        if mode is not None:
+            out.detection_modes[mode] += 1
+        if problem is not None:
+            bad_frame(t, problem)
+        else:
+            identify(t, det, alpha, srd)
+
+    def frames(raw):
+        """(stamp, image message or CDR bytes, alpha, srd, key frame?) of every usable pair, in order."""
+        for t in messages(raw=raw):
             n0 = counts["frames"]
             got = paired(t)
             if got is not None:
                 img, alpha, srd = got
-                det, problem, c_dec, c_det = _decode_detect(proc, tracker, img, srd, key_frame(srd))
-                clock.add("decode", c_dec)
-                clock.add("detect", c_det)
-                if problem is not None:
-                    bad_frame(t, problem)
-                else:
-                    identify(t, det, alpha, srd)
+                yield t, img, alpha, srd, (key_frame(srd) if track is not None else None)
             if counts["frames"] != n0:
                 tick()
-        add_modes(tracker.counts)
-    elif workers <= 1:
-        for t in messages(raw=False):
-            n0 = counts["frames"]
-            got = paired(t)
-            if got is not None:
-                img, alpha, srd = got
-                try:
-                    c = time.process_time()
-                    image, enc = array_from_image(img, shape)
-                    c1 = time.process_time()
-                    clock.add("decode", c1 - c)
-                    det = proc.detect(image, enc, srd)
-                    clock.add("detect", time.process_time() - c1)
-                except (MessageError, FrameError) as exc:
-                    bad_frame(t, exc)
-                else:
-                    identify(t, det, alpha, srd)
-            if counts["frames"] != n0:
-                tick()
+
+    if workers <= 1:            # one process: the generic message decoder, detection here
+        tracker = _tracker(proc, track) if track is not None else None
+        for t, img, alpha, srd, key in frames(raw=False):
+            detected(t, alpha, srd, _decode_detect(proc, tracker, img, srd, key))
     else:
         import collections  # noqa: PLC0415
         import multiprocessing  # noqa: PLC0415
         from concurrent.futures import ProcessPoolExecutor  # noqa: PLC0415
 
         window = collections.deque()            # (stamp, alpha, srd, future), recording order
-        depth = 4 * workers
 
         def drain(keep):
             while len(window) > keep:
                 t, alpha, srd, fut = window.popleft()
-                res = fut.result()
-                det, problem, c_dec, c_det = res[:4]
-                if len(res) > 4 and res[4] is not None:
-                    out.detection_modes[res[4]] += 1
-                clock.add("decode", c_dec)
-                clock.add("detect", c_det)
-                if problem is not None:
-                    bad_frame(t, problem)
-                else:
-                    identify(t, det, alpha, srd)
+                detected(t, alpha, srd, fut.result())
 
         ctx = multiprocessing.get_context("forkserver")
         initargs = (ref, instrument.detector, instrument.sdd_reported_m, instrument.flat_field(), init_frames,
@@ -355,36 +313,30 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
         # a whole block (key frame and its followers) to the same one (the one least busy when the
         # block starts: which worker runs a block does not change its results),
         # enough frames in flight that every worker has a block to work on
-        pools = [ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=initargs)] \
-            if track is None else \
-            [ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_init, initargs=initargs)
-             for _ in range(workers)]
-        if track is not None:
+        if track is None:
+            pools = [ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=initargs)]
+            depth = 4 * workers
+        else:
+            pools = [ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_init, initargs=initargs)
+                     for _ in range(workers)]
             depth = 3 * workers * (track.block_frames + 1)      # slack for uneven workers
         n_block = 0
         busy = [0] * workers          # frames submitted to each worker and not yet done
         done = collections.deque()    # worker of each finished frame (callbacks; thread-safe appends)
         try:
-            for t in messages(raw=True):
-                n0 = counts["frames"]
-                got = paired(t)
-                if got is not None:
-                    img, alpha, srd = got
-                    if track is None:
-                        fut = pools[0].submit(_worker_detect, (t, img, srd))
-                    else:
-                        while done:
-                            busy[done.popleft()] -= 1
-                        key = key_frame(srd)
-                        if key:     # a new block to the worker with the fewest frames in flight
-                            n_block = min(range(workers), key=lambda i: busy[i])
-                        busy[n_block] += 1
-                        fut = pools[n_block].submit(_worker_detect_tracked, (t, img, srd, key))
-                        fut.add_done_callback(lambda _f, i=n_block: done.append(i))
-                    window.append((t, alpha, srd, fut))
-                    drain(depth)
-                if counts["frames"] != n0:
-                    tick()
+            for t, img, alpha, srd, key in frames(raw=True):
+                if track is None:
+                    fut = pools[0].submit(_worker_detect, (t, img, srd, None))
+                else:
+                    while done:
+                        busy[done.popleft()] -= 1
+                    if key:     # a new block to the worker with the fewest frames in flight
+                        n_block = min(range(workers), key=lambda i: busy[i])
+                    busy[n_block] += 1
+                    fut = pools[n_block].submit(_worker_detect, (t, img, srd, key))
+                    fut.add_done_callback(lambda _f, i=n_block: done.append(i))
+                window.append((t, alpha, srd, fut))
+                drain(depth)
             drain(0)
         finally:
             for pool in pools:
