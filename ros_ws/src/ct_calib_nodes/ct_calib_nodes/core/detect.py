@@ -1969,15 +1969,15 @@ def _centre_uncertainty(accepted, meas, model, st):
     infl = np.maximum(1.0, meas.n_pts[acc] / (np.pi * np.sqrt(p[:, 2] * p[:, 3])))
     with np.errstate(divide="ignore", invalid="ignore"):
         ainv = np.stack([np.stack([syy, -sxy], -1), np.stack([-sxy, sxx], -1)], -2) / det_[:, None, None]
-    cov_all = (infl * meas.s2[acc])[:, None, None] * ainv
-    on_all = meas.edge_frac[acc] > st.background_edge_min_fraction
+    cov_all = (infl * meas.s2[acc])[:, None, None] * ainv + meas.extra_cov[acc]
+    on_all = (meas.edge_frac[acc] > st.background_edge_min_fraction) & (det_ > 0)
+    cov_all[det_ <= 0] = np.nan
     for j, c in enumerate(accepted):
-        if det_[j] <= 0:
-            out.append((c, np.full((2, 2), np.nan), False))
+        cov = cov_all[j]
+        if not on_all[j]:
+            out.append((c, cov, False))
             continue
-        cov = cov_all[j] + meas.extra_cov[c]
-        on_edge = bool(on_all[j])
-        if on_edge and st.background_edge_clusters and meas.normals[c] is not None:
+        if st.background_edge_clusters and meas.normals[c] is not None:
             # edge points on a background edge (band or step) err together: each run of them is
             # one cluster of a cluster-robust (sandwich) covariance, from their own residuals
             nx, ny, d, oe = meas.normals[c]
@@ -1986,11 +1986,11 @@ def _centre_uncertainty(accepted, meas, model, st):
                 sg = np.array([np.dot(nx[g], d[g]), np.dot(ny[g], d[g])])
                 m += np.outer(sg, sg)
             cov = cov + st.background_edge_clusters * (ainv[j] @ m @ ainv[j])
-        if on_edge and st.background_edge_refit:
+        if st.background_edge_refit:
             cov = cov + np.outer(meas.edge_shift[c], meas.edge_shift[c])
-        if on_edge and st.background_edge_sigma_px:
+        if st.background_edge_sigma_px:
             cov = cov + st.background_edge_sigma_px ** 2 * np.outer(model.eu[c], model.eu[c])
-        out.append((c, cov, on_edge))
+        out.append((c, cov, True))
     return out
 
 
