@@ -281,6 +281,7 @@ class SphereIdentifier:
         self._scale = 1.0
         self._follow = None       # pose following during the rotation (see _follow_pose)
         self.pose_refits = 0      # how many times the pose was refitted during the rotation
+        self._df_cache = (None, None)   # (w bytes, its static_to_detector_frame) of _raw_predict
 
     # ------------------------------------------------------------------ model
     @property
@@ -300,7 +301,10 @@ class SphereIdentifier:
         if w is not None or self._geom is None:
             w = self._w if w is None else w
             pts = forward_srf(w, self.centres_of_m, a, self.detector)
-            geom = static_to_detector_frame(w, self.centres_of_m)
+            key = np.asarray(w, dtype=np.float64).tobytes()
+            if self._df_cache[0] != key:        # the same pose frame after frame: converted once
+                self._df_cache = (key, static_to_detector_frame(w, self.centres_of_m))
+            geom = self._df_cache[1]
             c_df = sphere_centres_df(geom, np.zeros(6), a)
         else:
             geom, motion = self._geom, self._motion
