@@ -377,6 +377,10 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
                 detected(t, alpha, srd, res[:5])
 
         ctx = multiprocessing.get_context("forkserver")
+        # the fork server imports the workers' modules once; each worker forked from it then starts
+        # without importing numpy, scipy, OpenCV and the detector again (no effect once it runs)
+        ctx.set_forkserver_preload(["ct_calib_nodes.offline", "ct_calib_nodes.core.ct_pipeline",
+                                    "ct_calib_nodes.core.track", "ct_calib_nodes.io.raw_replay"])
         initargs = (ref, instrument.detector, instrument.sdd_reported_m, instrument.flat_field(), init_frames,
                     position_tolerance_m, instrument.dark, track)
         # without tracking one pool shares the frames out; with it, one single-process pool per worker,
