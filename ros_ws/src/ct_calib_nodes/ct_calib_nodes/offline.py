@@ -149,26 +149,32 @@ class _FrameSlots:
     bytes with the task pickles them through the pool's pipe instead, which cost about 3 ms CPU per
     2 MB frame between the two processes (more than the main process's whole read). A slot is
     reused once its frame's result is back; a frame larger than a slot, or with every slot busy,
-    goes through the pipe as before (the same bytes: the same results)."""
+    goes through the pipe as before (the same bytes: the same results), and so does every frame
+    when the shared file cannot be made (no room in /dev/shm)."""
 
     MAX_BYTES = 512 << 20
 
     def __init__(self, n_slots: int, slot_bytes: int):
         import mmap  # noqa: PLC0415
 
-        shm = "/dev/shm"
-        fd, self.path = tempfile.mkstemp(prefix="metro_replay_", dir=shm if os.path.isdir(shm) else None)
         self.size = -(-int(slot_bytes) // 4096) * 4096
         n = max(1, min(int(n_slots), self.MAX_BYTES // self.size))
+        self.mm, self.path, self.free = None, None, []
+        shm = "/dev/shm"
         try:
-            os.ftruncate(fd, n * self.size)
-            self.mm = mmap.mmap(fd, n * self.size)
+            fd, self.path = tempfile.mkstemp(prefix="metro_replay_", dir=shm if os.path.isdir(shm) else None)
         except OSError:
+            return                      # no slots: every frame through the pipe
+        try:
+            # reserved up front: a tmpfs too small for it (a container's 64 MB /dev/shm) refuses
+            # here (ENOSPC) instead of killing the process with SIGBUS at a later write
+            os.posix_fallocate(fd, 0, n * self.size)
+            self.mm = mmap.mmap(fd, n * self.size)
+            self.free = list(range(n - 1, -1, -1))
+        except OSError:
+            self.close()
+        finally:
             os.close(fd)
-            os.unlink(self.path)
-            raise
-        os.close(fd)
-        self.free = list(range(n - 1, -1, -1))
 
     def put(self, data):
         """(path, slot, offset, length) of ``data`` copied into a free slot, or None."""
@@ -184,11 +190,16 @@ class _FrameSlots:
             self.free.append(ref[1])
 
     def close(self):
-        self.mm.close()
-        try:
-            os.unlink(self.path)
-        except FileNotFoundError:
-            pass
+        if self.mm is not None:
+            self.mm.close()
+            self.mm = None
+        self.free = []
+        if self.path is not None:
+            try:
+                os.unlink(self.path)
+            except FileNotFoundError:
+                pass
+            self.path = None
 
     @staticmethod
     def view(ref):
