@@ -85,6 +85,11 @@ class _StageClock:
 
 # --- worker processes (parallel replay): decode + detect one frame ---------------------------------
 _WORKER: dict = {}
+# what a worker imports (FrameProcessor builds a SphereIdentifier: scipy.optimize), for the fork
+# server to import once
+_WORKER_MODULES = ["ct_calib_nodes.offline", "ct_calib_nodes.core.ct_pipeline", "ct_calib_nodes.core.detect",
+                   "ct_calib_nodes.core.identify", "ct_calib_nodes.core.phantom", "ct_calib_nodes.core.track",
+                   "ct_calib_nodes.io.raw_replay", "cv2"]
 
 
 def _worker_init(ref, detector, sdd, flat, init_frames, tolerance, dark=None, track=None):
@@ -390,8 +395,7 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
         ctx = multiprocessing.get_context("forkserver")
         # the fork server imports the workers' modules once; each worker forked from it then starts
         # without importing numpy, scipy, OpenCV and the detector again (no effect once it runs)
-        ctx.set_forkserver_preload(["ct_calib_nodes.offline", "ct_calib_nodes.core.ct_pipeline",
-                                    "ct_calib_nodes.core.track", "ct_calib_nodes.io.raw_replay"])
+        ctx.set_forkserver_preload(_WORKER_MODULES)
         initargs = (ref, instrument.detector, instrument.sdd_reported_m, instrument.flat_field(), init_frames,
                     position_tolerance_m, instrument.dark, track)
         # without tracking one pool shares the frames out; with it, one single-process pool per worker,
