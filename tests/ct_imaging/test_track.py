@@ -81,8 +81,6 @@ def test_windowed_matches_full_within_noise(case):
 
 def test_far_move_falls_back_to_the_full_frame(case):
     name, srd, i0, frames = case
-    if name != "near":
-        pytest.skip("one case suffices")
     drange = diameter_range(srd)
     trk = TrackingDetector(i0, None, (DET.rows, DET.cols), TrackSettings(block_frames=10))
     trk.detect(frames[0], "mono16", drange, key=True)

@@ -101,16 +101,20 @@ def test_parallel_replay_is_bit_identical(small):
     assert "positions 1, 3" in repeatability_text(groups)
 
 
-def test_windowed_replay_parallel_is_bit_identical_and_close_to_full(small):
+def test_windowed_replay_parallel_is_bit_identical_and_close_to_full(small, monkeypatch):
     """Windowed detection (core/track.py, blocks of 3 frames): 2 workers == 1 process bit for bit
     (a block goes to one worker); the solved static geometry agrees with the full-frame one
-    within a small fraction of its standard uncertainty."""
+    within a small fraction of its standard uncertainty. Here the shared memory has room for
+    one frame only: the frames in flight beside it go through the pool's pipe (both hand-overs
+    in one run; the full-detection test above uses the slots alone)."""
+    from ct_calib_nodes import offline
     from ct_calib_nodes.core.track import TrackSettings
     from ct_calib_nodes.offline import solve_recording
 
     rec, inst, ref, full = small
     ts = TrackSettings(block_frames=3)
     seq = solve_recording(rec, inst, ref, workers=1, tracking=ts)
+    monkeypatch.setattr(offline._FrameSlots, "MAX_BYTES", 1)
     par = solve_recording(rec, inst, ref, workers=2, tracking=ts)
     assert not seq.problems and not par.problems, (seq.problems, par.problems)
     assert seq.counts == par.counts == full.counts
@@ -131,3 +135,29 @@ def test_windowed_replay_parallel_is_bit_identical_and_close_to_full(small):
     assert seq.static.success and full.static.success
     u = np.sqrt(np.diag(full.static.covariance))
     assert np.max(np.abs(seq.static.x - full.static.x) / u) < 0.1, np.abs(seq.static.x - full.static.x) / u
+
+
+def test_frame_slots_hand_over_and_refuse_cleanly():
+    """A frame's bytes come back unchanged from its slot; a frame larger than a slot, every slot
+    busy, or no room for the shared file at all: None (the caller sends the bytes instead); the
+    file is gone after close."""
+    import os
+
+    from ct_calib_nodes.offline import _WORKER, _FrameSlots
+
+    s = _FrameSlots(2, 5000)
+    a, b = os.urandom(4999), os.urandom(17)
+    ra, rb = s.put(a), s.put(b)
+    assert bytes(_FrameSlots.view(ra)) == a and bytes(_FrameSlots.view(rb)) == b
+    assert s.put(b"x") is None                      # both slots busy
+    s.release(ra)
+    assert s.put(os.urandom(8193)) is None          # larger than a slot (5000 -> 8192 bytes)
+    rc = s.put(b"abc")
+    assert rc[1] == ra[1] and bytes(_FrameSlots.view(rc)) == b"abc"
+    path = s.path
+    _WORKER.pop("slots").clear()                    # this process's views (a worker keeps its own)
+    s.close()
+    assert not os.path.exists(path)
+    huge = type("Huge", (_FrameSlots,), {"MAX_BYTES": 1 << 62})(1 << 40, 1 << 20)   # an exabyte: no room
+    assert huge.put(b"x") is None and huge.path is None
+    huge.close()

@@ -83,6 +83,11 @@ class _StageClock:
 
 # --- worker processes (parallel replay): decode + detect one frame ---------------------------------
 _WORKER: dict = {}
+# what a worker imports (FrameProcessor builds a SphereIdentifier: scipy.optimize), for the fork
+# server to import once
+_WORKER_MODULES = ["ct_calib_nodes.offline", "ct_calib_nodes.core.ct_pipeline", "ct_calib_nodes.core.detect",
+                   "ct_calib_nodes.core.identify", "ct_calib_nodes.core.phantom", "ct_calib_nodes.core.track",
+                   "ct_calib_nodes.io.raw_replay", "cv2"]
 
 
 def _worker_init(ref, detector, sdd, flat, init_frames, tolerance, dark=None, track=None):
@@ -105,7 +110,10 @@ def _tracker(proc, settings):
 
 
 def _decode_detect(proc, tracker, data, srd, key):
-    """(detections or None, problem or None, decode s, detect s) of one frame's CDR bytes or message."""
+    """One frame's CDR bytes or Image message -> (detections or None, problem or None, decode s,
+    detect s, detection mode). The mode is 'full', 'window' or 'fallback' with windowed detection
+    (``tracker``, ``key``: does a block start here), None without it or when the frame did not
+    reach detection."""
     from ct_calib_nodes.io.raw_replay import ImageView  # noqa: PLC0415
 
     c0 = time.process_time()
@@ -113,47 +121,100 @@ def _decode_detect(proc, tracker, data, srd, key):
         msg = ImageView.from_cdr(data) if isinstance(data, (bytes, bytearray, memoryview)) else data
         image, enc = array_from_image(msg, (proc.detector.rows, proc.detector.cols))
     except (MessageError, ValueError) as exc:
-        return None, str(exc), time.process_time() - c0, 0.0
+        return None, str(exc), time.process_time() - c0, 0.0, None
     c1 = time.process_time()
+    before = dict(tracker.counts) if tracker is not None else {}
     try:
         if tracker is None:
             det = proc.detect(image, enc, srd)
         else:
             det = tracker.detect(image, enc, proc.diameter_range_px(srd), key=key)
     except FrameError as exc:
-        return None, str(exc), c1 - c0, time.process_time() - c1
-    return det, None, c1 - c0, time.process_time() - c1
-
-
-def _worker_detect_tracked(task):
-    """(stamp, CDR bytes, srd, key frame?) -> ``_decode_detect``'s result and the detection mode
-    ('full', 'window', 'fallback'; None when the frame did not reach detection). Frames of a block
-    come in order to the same worker (its tracker carries the previous frame's shadows)."""
-    _t, data, srd, key = task
-    tracker = _WORKER["track"]
-    before = dict(tracker.counts)
-    res = _decode_detect(_WORKER["proc"], tracker, data, srd, key)
+        return None, str(exc), c1 - c0, time.process_time() - c1, None
     mode = next((k for k in before if tracker.counts[k] != before[k]), None)
-    return (*res, mode)
+    return det, None, c1 - c0, time.process_time() - c1, mode
 
 
 def _worker_detect(task):
-    """(stamp, CDR bytes of the Image, srd) -> (detections or None, problem or None, decode s, detect s)."""
-    from ct_calib_nodes.io.raw_replay import ImageView  # noqa: PLC0415
+    """(stamp, CDR bytes of the Image or a _FrameSlots reference, srd, key frame?) in a worker
+    process -> ``_decode_detect``'s result. With windowed detection the frames of a block come in
+    order to the same worker (its tracker carries the previous frame's shadows)."""
+    _t, data, srd, key = task
+    if isinstance(data, tuple):
+        data = _FrameSlots.view(data)
+    res = _decode_detect(_WORKER["proc"], _WORKER["track"], data, srd, key)
+    return (*res, (os.getpid(), time.process_time()))      # this process's CPU so far (start-up included)
 
-    _t, data, srd = task
-    proc = _WORKER["proc"]
-    c0 = time.process_time()
-    try:
-        image, enc = array_from_image(ImageView.from_cdr(data), (proc.detector.rows, proc.detector.cols))
-    except (MessageError, ValueError) as exc:
-        return None, str(exc), time.process_time() - c0, 0.0
-    c1 = time.process_time()
-    try:
-        det = proc.detect(image, enc, srd)
-    except FrameError as exc:
-        return None, str(exc), c1 - c0, time.process_time() - c1
-    return det, None, c1 - c0, time.process_time() - c1
+
+class _FrameSlots:
+    """Fixed-size slots of a shared file in memory (/dev/shm) through which the main process hands
+    the frames' CDR bytes to the worker processes: one copy in, read in place there. Sending the
+    bytes with the task pickles them through the pool's pipe instead, which cost about 3 ms CPU per
+    2 MB frame between the two processes (more than the main process's whole read). A slot is
+    reused once its frame's result is back; a frame larger than a slot, or with every slot busy,
+    goes through the pipe as before (the same bytes: the same results), and so does every frame
+    when the shared file cannot be made (no room in /dev/shm)."""
+
+    MAX_BYTES = 512 << 20
+
+    def __init__(self, n_slots: int, slot_bytes: int):
+        import mmap  # noqa: PLC0415
+
+        self.size = -(-int(slot_bytes) // 4096) * 4096
+        n = max(1, min(int(n_slots), self.MAX_BYTES // self.size))
+        self.mm, self.path, self.free = None, None, []
+        shm = "/dev/shm"
+        try:
+            fd, self.path = tempfile.mkstemp(prefix="metro_replay_", dir=shm if os.path.isdir(shm) else None)
+        except OSError:
+            return                      # no slots: every frame through the pipe
+        try:
+            # reserved up front: a tmpfs too small for it (a container's 64 MB /dev/shm) refuses
+            # here (ENOSPC) instead of killing the process with SIGBUS at a later write
+            os.posix_fallocate(fd, 0, n * self.size)
+            self.mm = mmap.mmap(fd, n * self.size)
+            self.free = list(range(n - 1, -1, -1))
+        except OSError:
+            self.close()
+        finally:
+            os.close(fd)
+
+    def put(self, data):
+        """(path, slot, offset, length) of ``data`` copied into a free slot, or None."""
+        n = len(data)
+        if n > self.size or not self.free:
+            return None
+        k = self.free.pop()
+        self.mm[k * self.size:k * self.size + n] = data
+        return self.path, k, k * self.size, n
+
+    def release(self, ref):
+        if ref is not None:
+            self.free.append(ref[1])
+
+    def close(self):
+        if self.mm is not None:
+            self.mm.close()
+            self.mm = None
+        self.free = []
+        if self.path is not None:
+            try:
+                os.unlink(self.path)
+            except FileNotFoundError:
+                pass
+            self.path = None
+
+    @staticmethod
+    def view(ref):
+        """A worker's read-only view of a slot (the file mapped once per process)."""
+        import mmap  # noqa: PLC0415
+
+        path, _k, off, n = ref
+        maps = _WORKER.setdefault("slots", {})
+        if path not in maps:
+            with open(path, "rb") as fh:
+                maps[path] = memoryview(mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ))
+        return maps[path][off:off + n]
 
 
 def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: str = "linear",
@@ -168,7 +229,9 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
     (the images read as raw bytes and viewed without a copy, io/raw_replay.py); identity, the
     accumulation and the solvers stay in this process and take the frames in recording order,
     so the results are bit for bit those of ``workers`` = 1.
-    ``timing``: a dict filled with CPU seconds per stage (read, decode, detect, identify, solve).
+    ``timing``: a dict filled with CPU seconds per stage (read, decode, detect, identify, solve), and
+    with ``workers`` > 1 ``worker_processes``: the worker processes' whole CPU time (start-up,
+    receiving the frames, decode and detect) up to their last frame.
     ``tracking``: None / False: the full detector on every frame; True or a core.track.TrackSettings:
     windowed detection (core/track.py): the full detector on the whole frame at a key frame (the
     first of a stage position, then every ``block_frames`` frames), on a crop round the previous
@@ -203,11 +266,6 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
             block["srd"], block["n"] = srd, 0
         block["n"] += 1
         return block["n"] == 1
-
-    def add_modes(c):
-        for k, v in c.items():
-            out.detection_modes[k] += v
-    shape = (instrument.detector.rows, instrument.detector.cols)
 
     def take(results):
         for fr in results:
@@ -288,105 +346,95 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
                 stages[t] = msg
             yield t
 
-    if workers <= 1 and track is not None:
-        tracker = _tracker(proc, track)
-        for t in messages(raw=False):
+    def detected(t, alpha, srd, res):
+        """A frame's ``_decode_detect`` result, taken in recording order: identity, accumulation."""
+        det, problem, c_dec, c_det, mode = res
+        clock.add("decode", c_dec)
+        clock.add("detect", c_det)
+        if mode is not None:
+            out.detection_modes[mode] += 1
+        if problem is not None:
+            bad_frame(t, problem)
+        else:
+            identify(t, det, alpha, srd)
+
+    def frames(raw):
+        """(stamp, image message or CDR bytes, alpha, srd, key frame?) of every usable pair, in order."""
+        for t in messages(raw=raw):
             n0 = counts["frames"]
             got = paired(t)
             if got is not None:
                 img, alpha, srd = got
-                det, problem, c_dec, c_det = _decode_detect(proc, tracker, img, srd, key_frame(srd))
-                clock.add("decode", c_dec)
-                clock.add("detect", c_det)
-                if problem is not None:
-                    bad_frame(t, problem)
-                else:
-                    identify(t, det, alpha, srd)
+                yield t, img, alpha, srd, (key_frame(srd) if track is not None else None)
             if counts["frames"] != n0:
                 tick()
-        add_modes(tracker.counts)
-    elif workers <= 1:
-        for t in messages(raw=False):
-            n0 = counts["frames"]
-            got = paired(t)
-            if got is not None:
-                img, alpha, srd = got
-                try:
-                    c = time.process_time()
-                    image, enc = array_from_image(img, shape)
-                    c1 = time.process_time()
-                    clock.add("decode", c1 - c)
-                    det = proc.detect(image, enc, srd)
-                    clock.add("detect", time.process_time() - c1)
-                except (MessageError, FrameError) as exc:
-                    bad_frame(t, exc)
-                else:
-                    identify(t, det, alpha, srd)
-            if counts["frames"] != n0:
-                tick()
+
+    if workers <= 1:            # one process: the generic message decoder, detection here
+        tracker = _tracker(proc, track) if track is not None else None
+        for t, img, alpha, srd, key in frames(raw=False):
+            detected(t, alpha, srd, _decode_detect(proc, tracker, img, srd, key))
     else:
         import collections  # noqa: PLC0415
         import multiprocessing  # noqa: PLC0415
         from concurrent.futures import ProcessPoolExecutor  # noqa: PLC0415
 
-        window = collections.deque()            # (stamp, alpha, srd, future), recording order
-        depth = 4 * workers
+        window = collections.deque()            # (stamp, alpha, srd, future, slot), recording order
+        slots = None
+        worker_cpu = {}                         # pid -> its CPU seconds at its latest frame
 
         def drain(keep):
             while len(window) > keep:
-                t, alpha, srd, fut = window.popleft()
+                t, alpha, srd, fut, slot = window.popleft()
                 res = fut.result()
-                det, problem, c_dec, c_det = res[:4]
-                if len(res) > 4 and res[4] is not None:
-                    out.detection_modes[res[4]] += 1
-                clock.add("decode", c_dec)
-                clock.add("detect", c_det)
-                if problem is not None:
-                    bad_frame(t, problem)
-                else:
-                    identify(t, det, alpha, srd)
+                slots.release(slot)
+                worker_cpu[res[5][0]] = res[5][1]
+                detected(t, alpha, srd, res[:5])
 
         ctx = multiprocessing.get_context("forkserver")
+        # the fork server imports the workers' modules once; each worker forked from it then starts
+        # without importing numpy, scipy, OpenCV and the detector again (no effect once it runs)
+        ctx.set_forkserver_preload(_WORKER_MODULES)
         initargs = (ref, instrument.detector, instrument.sdd_reported_m, instrument.flat_field(), init_frames,
                     position_tolerance_m, instrument.dark, track)
         # without tracking one pool shares the frames out; with it, one single-process pool per worker,
         # a whole block (key frame and its followers) to the same one (the one least busy when the
         # block starts: which worker runs a block does not change its results),
         # enough frames in flight that every worker has a block to work on
-        pools = [ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=initargs)] \
-            if track is None else \
-            [ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_init, initargs=initargs)
-             for _ in range(workers)]
-        if track is not None:
+        if track is None:
+            pools = [ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=initargs)]
+            depth = 4 * workers
+        else:
+            pools = [ProcessPoolExecutor(1, mp_context=ctx, initializer=_worker_init, initargs=initargs)
+                     for _ in range(workers)]
             depth = 3 * workers * (track.block_frames + 1)      # slack for uneven workers
         n_block = 0
         busy = [0] * workers          # frames submitted to each worker and not yet done
         done = collections.deque()    # worker of each finished frame (callbacks; thread-safe appends)
         try:
-            for t in messages(raw=True):
-                n0 = counts["frames"]
-                got = paired(t)
-                if got is not None:
-                    img, alpha, srd = got
-                    if track is None:
-                        fut = pools[0].submit(_worker_detect, (t, img, srd))
-                    else:
-                        while done:
-                            busy[done.popleft()] -= 1
-                        key = key_frame(srd)
-                        if key:     # a new block to the worker with the fewest frames in flight
-                            n_block = min(range(workers), key=lambda i: busy[i])
-                        busy[n_block] += 1
-                        fut = pools[n_block].submit(_worker_detect_tracked, (t, img, srd, key))
-                        fut.add_done_callback(lambda _f, i=n_block: done.append(i))
-                    window.append((t, alpha, srd, fut))
-                    drain(depth)
-                if counts["frames"] != n0:
-                    tick()
+            for t, img, alpha, srd, key in frames(raw=True):
+                if slots is None:       # sized on the first frame: a frame in flight per slot
+                    slots = _FrameSlots(depth + 1, len(img))
+                slot = slots.put(img)
+                data = slot if slot is not None else img
+                if track is None:
+                    fut = pools[0].submit(_worker_detect, (t, data, srd, None))
+                else:
+                    while done:
+                        busy[done.popleft()] -= 1
+                    if key:     # a new block to the worker with the fewest frames in flight
+                        n_block = min(range(workers), key=lambda i: busy[i])
+                    busy[n_block] += 1
+                    fut = pools[n_block].submit(_worker_detect, (t, data, srd, key))
+                    fut.add_done_callback(lambda _f, i=n_block: done.append(i))
+                window.append((t, alpha, srd, fut, slot))
+                drain(depth)
             drain(0)
         finally:
             for pool in pools:
                 pool.shutdown(wait=True, cancel_futures=True)
+            if slots is not None:
+                slots.close()
+            clock.t["worker_processes"] = sum(worker_cpu.values())
     c = time.process_time()
     take(proc.flush())
     clock.add("identify", time.process_time() - c)

@@ -546,23 +546,36 @@ def _dark_level(dark, shape):
 # --------------------------------------------------------------------------- helpers
 
 def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Exact bilinear interpolation (float64 weights), points assumed inside."""
+    """Exact bilinear interpolation (float64 weights), points assumed inside (clipped to the
+    image's last interior cell: a point outside extrapolates from it)."""
     rows, cols = img.shape
-    x0 = np.floor(x).astype(np.intp)
-    y0 = np.floor(y).astype(np.intp)
+    x0 = x.astype(np.intp)          # truncation: floor for x >= 0, and the clip below makes
+    y0 = y.astype(np.intp)          # the two the same for x < 0
     np.clip(x0, 0, cols - 2, out=x0)
     np.clip(y0, 0, rows - 2, out=y0)
     fx = x - x0
     fy = y - y0
     flat = img.ravel()
-    i00 = y0 * cols + x0
+    i00 = y0
+    i00 *= cols
+    i00 += x0
     v00 = flat[i00]
-    v01 = flat[i00 + 1]
-    v10 = flat[i00 + cols]
-    v11 = flat[i00 + cols + 1]
-    top = v00 + fx * (v01 - v00)
-    bot = v10 + fx * (v11 - v10)
-    return top + fy * (bot - top)
+    i00 += 1
+    v01 = flat[i00]
+    i00 += cols
+    v11 = flat[i00]
+    i00 -= 1
+    v10 = flat[i00]
+    v01 = v01 - v00                 # the same operations as v00 + fx (v01 - v00), in place
+    top = fx * v01
+    top += v00
+    v11 = v11 - v10
+    bot = fx * v11
+    bot += v10
+    bot -= top
+    bot *= fy
+    bot += top
+    return bot
 
 
 def _fit_one(points: np.ndarray, fitter: str):
@@ -1298,23 +1311,35 @@ def _line_fit(s, w, v):
 
 def _background_at(model, x, y):
     """B of every candidate at image points x, y of shape (C, ...)."""
-    ox = model.origin[:, 0].reshape((-1,) + (1,) * (x.ndim - 1))
-    oy = model.origin[:, 1].reshape((-1,) + (1,) * (x.ndim - 1))
-    eux = model.eu[:, 0].reshape(ox.shape)
-    euy = model.eu[:, 1].reshape(ox.shape)
-    u = (x - ox) * eux + (y - oy) * euy
-    v = (x - ox) * (-euy) + (y - oy) * eux
+    shape = (-1,) + (1,) * (x.ndim - 1)
+    ox = model.origin[:, 0].reshape(shape)
+    oy = model.origin[:, 1].reshape(shape)
+    eux = model.eu[:, 0].reshape(shape)
+    euy = model.eu[:, 1].reshape(shape)
+    dx = x - ox
+    dy = y - oy
+    u = dx * eux
+    u += dy * euy
+    v = dy * eux
+    v -= dx * euy                   # (x - ox)(-euy) + (y - oy) eux
     n = model.a.shape[1]
-    fu = np.clip(u - model.umin, 0.0, n - 1.000001)
-    i0 = np.floor(fu).astype(np.intp)
-    f = fu - i0
-    C = x.shape[0]
-    flat_i = (np.arange(C).reshape(ox.shape) * n + i0)
+    fu = u - model.umin
+    np.clip(fu, 0.0, n - 1.000001, out=fu)
+    flat_i = fu.astype(np.intp)     # fu >= 0: truncation is the floor
+    f = fu
+    f -= flat_i
+    flat_i += np.arange(x.shape[0]).reshape(shape) * n
     a = model.a.ravel()
     b = model.b.ravel()
-    a_u = a[flat_i] * (1 - f) + a[flat_i + 1] * f
-    b_u = b[flat_i] * (1 - f) + b[flat_i + 1] * f
-    return a_u + b_u * v, u
+    g = 1 - f
+    a_u = a[flat_i] * g
+    b_u = b[flat_i] * g
+    flat_i += 1
+    a_u += a[flat_i] * f
+    b_u += b[flat_i] * f
+    b_u *= v
+    b_u += a_u
+    return b_u, u
 
 
 # --------------------------------------------------------------------------- stage 4b: corners
@@ -1744,16 +1769,14 @@ def _edge_spread2(slope, level, valid, q_in, r_in, radius, dr, st):
     sig = np.linspace(0.05, 3.0, 60)
     b_all = np.fft.irfft(np.fft.rfft(pad)[None, :] * np.exp(-2.0 * (np.pi * f[None, :] * sig[:, None]) ** 2),
                          n, axis=1)[:, :x.size]
-    app = np.full(sig.size, np.nan)
-    x_in = R * (f_in - 1.0)
-    for k, b in enumerate(b_all):
-        qi = np.interp(x_in, x, b)
-        lev = 1.0 - st.edge_level * (1.0 - qi)
-        m = np.nonzero((b[:-1] < lev) & (b[1:] >= lev))[0]
-        if m.size:
-            xc = x[m[-1]]
-            sl = (np.interp(xc + h_dr, x, b) - np.interp(xc - h_dr, x, b)) / (2.0 * h_dr)
-            app[k] = (1.0 - qi) / (np.sqrt(2.0 * np.pi) * sl)
+    # every blur at once: the inner level, the last rising crossing of the iso-level, the slope there
+    qi = _interp_rows(np.full(sig.size, R * (f_in - 1.0)), x, b_all)
+    lev = 1.0 - st.edge_level * (1.0 - qi)
+    cross = (b_all[:, :-1] < lev[:, None]) & (b_all[:, 1:] >= lev[:, None])
+    xc = x[x.size - 2 - np.argmax(cross[:, ::-1], axis=1)]
+    sl = (_interp_rows(xc + h_dr, x, b_all) - _interp_rows(xc - h_dr, x, b_all)) / (2.0 * h_dr)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        app = np.where(cross.any(axis=1), (1.0 - qi) / (np.sqrt(2.0 * np.pi) * sl), np.nan)
     # a soft ball edge makes the apparent s fall with small blurs before it rises: only the
     # rising branch identifies s; below its minimum the shadows cannot tell the blur (returns 0,
     # the correction off, e.g. weakly absorbing balls 20 px across)
@@ -1767,6 +1790,18 @@ def _edge_spread2(slope, level, valid, q_in, r_in, radius, dr, st):
         return 0.0
     return float(np.interp(s_app, a_ok, s_ok)) ** 2
 
+
+
+def _interp_rows(xq, xp, fp):
+    """``np.interp(xq[k], xp, fp[k])`` for every row k of ``fp`` (K, N) at once (the same formula;
+    ``xp`` increasing)."""
+    n = xp.size
+    j = np.clip(np.searchsorted(xp, xq, side="right") - 1, 0, n - 2)
+    rows = np.arange(fp.shape[0])
+    lo, hi = fp[rows, j], fp[rows, j + 1]
+    out = (hi - lo) / (xp[j + 1] - xp[j]) * (xq - xp[j]) + lo
+    out = np.where(xq == xp[j], lo, out)
+    return np.where(xq < xp[0], fp[:, 0], np.where(xq >= xp[-1], fp[:, -1], out))
 
 
 def _fit_rows(ex, ey, sel, rows_, fitter):
@@ -2011,15 +2046,15 @@ def _centre_uncertainty(accepted, meas, model, st):
     infl = np.maximum(1.0, meas.n_pts[acc] / (np.pi * np.sqrt(p[:, 2] * p[:, 3])))
     with np.errstate(divide="ignore", invalid="ignore"):
         ainv = np.stack([np.stack([syy, -sxy], -1), np.stack([-sxy, sxx], -1)], -2) / det_[:, None, None]
-    cov_all = (infl * meas.s2[acc])[:, None, None] * ainv
-    on_all = meas.edge_frac[acc] > st.background_edge_min_fraction
+    cov_all = (infl * meas.s2[acc])[:, None, None] * ainv + meas.extra_cov[acc]
+    on_all = (meas.edge_frac[acc] > st.background_edge_min_fraction) & (det_ > 0)
+    cov_all[det_ <= 0] = np.nan
     for j, c in enumerate(accepted):
-        if det_[j] <= 0:
-            out.append((c, np.full((2, 2), np.nan), False))
+        cov = cov_all[j]
+        if not on_all[j]:
+            out.append((c, cov, False))
             continue
-        cov = cov_all[j] + meas.extra_cov[c]
-        on_edge = bool(on_all[j])
-        if on_edge and st.background_edge_clusters and meas.normals[c] is not None:
+        if st.background_edge_clusters and meas.normals[c] is not None:
             # edge points on a background edge (band or step) err together: each run of them is
             # one cluster of a cluster-robust (sandwich) covariance, from their own residuals
             nx, ny, d, oe = meas.normals[c]
@@ -2028,11 +2063,11 @@ def _centre_uncertainty(accepted, meas, model, st):
                 sg = np.array([np.dot(nx[g], d[g]), np.dot(ny[g], d[g])])
                 m += np.outer(sg, sg)
             cov = cov + st.background_edge_clusters * (ainv[j] @ m @ ainv[j])
-        if on_edge and st.background_edge_refit:
+        if st.background_edge_refit:
             cov = cov + np.outer(meas.edge_shift[c], meas.edge_shift[c])
-        if on_edge and st.background_edge_sigma_px:
+        if st.background_edge_sigma_px:
             cov = cov + st.background_edge_sigma_px ** 2 * np.outer(model.eu[c], model.eu[c])
-        out.append((c, cov, on_edge))
+        out.append((c, cov, True))
     return out
 
 

@@ -281,6 +281,7 @@ class SphereIdentifier:
         self._scale = 1.0
         self._follow = None       # pose following during the rotation (see _follow_pose)
         self.pose_refits = 0      # how many times the pose was refitted during the rotation
+        self._df_cache = (None, None)   # (w bytes, its static_to_detector_frame) of _raw_predict
 
     # ------------------------------------------------------------------ model
     @property
@@ -300,7 +301,10 @@ class SphereIdentifier:
         if w is not None or self._geom is None:
             w = self._w if w is None else w
             pts = forward_srf(w, self.centres_of_m, a, self.detector)
-            geom = static_to_detector_frame(w, self.centres_of_m)
+            key = np.asarray(w, dtype=np.float64).tobytes()
+            if self._df_cache[0] != key:        # the same pose frame after frame: converted once
+                self._df_cache = (key, static_to_detector_frame(w, self.centres_of_m))
+            geom = self._df_cache[1]
             c_df = sphere_centres_df(geom, np.zeros(6), a)
         else:
             geom, motion = self._geom, self._motion
@@ -619,9 +623,12 @@ class SphereIdentifier:
             return 0.0
         det = np.concatenate(frames)                                   # (D, 2)
         fj = np.repeat(np.arange(len(frames)), sizes)
-        diff = det[:, None, :] - pred[fj]                              # (D, N, 2)
-        d2 = np.einsum("dnk,dnk->dn", diff, diff).min(axis=1)
-        return float(np.sum(np.minimum(d2, gate * gate)))
+        dx = det[:, 0, None] - pred[fj, :, 0]                          # (D, N)
+        d2 = det[:, 1, None] - pred[fj, :, 1]
+        d2 *= d2
+        dx *= dx
+        d2 += dx
+        return float(np.sum(np.minimum(d2.min(axis=1), gate * gate)))
 
     def _refine(self, frames, alphas, w, coarse_gate):
         nfev = 0
@@ -649,10 +656,12 @@ class SphereIdentifier:
             n_match = len(fj)
         return w, res, n_match, nfev
 
-    def _gate(self, w=None, alphas=(0.0,)):
+    def _gate(self, w=None, alphas=(0.0,), r_px=None):
+        """Match gate [px]; ``r_px``: the shadow radii ``_raw_predict(alphas, w)`` gave, if at hand."""
         if self.settings.gate_px is not None:
             return float(self.settings.gate_px)
-        _, r_px = self._raw_predict(np.atleast_1d(alphas), w)
+        if r_px is None:
+            _, r_px = self._raw_predict(np.atleast_1d(alphas), w)
         return max(1.5, 0.35 * float(np.min(r_px)))
 
     def _match_frames(self, frames, alphas, w, gate):
@@ -719,8 +728,8 @@ class SphereIdentifier:
         if not np.isfinite(alpha_rad):
             raise ValueError("alpha_rad must be finite")
         raw, r_px = self._raw_predict([float(alpha_rad)])
+        gate = self._gate(r_px=r_px)
         raw, r_px = raw[0], r_px[0] * self._scale
-        gate = self._gate(None, [float(alpha_rad)])
         # loose pass: 2-D shift and scale about the detector centre (median based)
         pred = self._apply_similarity(raw)
         idx, _, _ = self._match(det, pred, r_px, 3.0 * gate)
