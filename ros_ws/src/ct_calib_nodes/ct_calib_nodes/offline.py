@@ -33,6 +33,7 @@ import argparse
 import os
 import pathlib
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, field
 
