@@ -340,14 +340,14 @@ class Renderer:
         return (counts / flat).astype(np.float32), cr, rad
 
 
-def visible_spheres(inst, cr, rad, *, margin_px=2.0, gap_px=1.0):
-    """Spheres whose shadow lies inside the detector and touches no other shadow (boolean (N,))."""
+def shadow_clearance(inst, cr, rad, *, margin_px=2.0):
+    """Per sphere: the gap [px] between its shadow and the nearest other shadow (radius upper bounds, so
+    the true gap is at least this), -inf where the shadow is not inside the detector with `margin_px`."""
     inside = ((cr[:, 0] - rad > margin_px) & (cr[:, 0] + rad < inst.cols - 1 - margin_px)
               & (cr[:, 1] - rad > margin_px) & (cr[:, 1] + rad < inst.rows - 1 - margin_px))
-    dist = np.linalg.norm(cr[:, None, :] - cr[None, :, :], axis=2)
-    touch = dist < rad[:, None] + rad[None, :] + gap_px
-    np.fill_diagonal(touch, False)
-    return inside & ~touch.any(axis=1)
+    gap = np.linalg.norm(cr[:, None, :] - cr[None, :, :], axis=2) - rad[:, None] - rad[None, :]
+    np.fill_diagonal(gap, np.inf)
+    return np.where(inside, gap.min(axis=1), -np.inf)
 
 
 def draw_case(seed: int, *, cols=512, n_views=36, vary_physics=True):
@@ -396,7 +396,7 @@ def generate(rec_dir, truth_path, seed: int, **kw):
         for j, a in enumerate(case["alphas"]):
             img, cr, rad = ren.frame(a, rng)
             views.append({"alpha": float(a), "centre_px": cr.tolist(), "shadow_radius_px": rad.tolist(),
-                          "visible": visible_spheres(inst, cr, rad).tolist()})
+                          "gap_px": shadow_clearance(inst, cr, rad).tolist()})
             # the stage read-back of the magnification axis jitters by a few um
             yield t0 + j * 400_000_000, img, a, inst.srd_reported_m + rng.normal(0, 2e-6)
 
