@@ -350,8 +350,11 @@ def shadow_clearance(inst, cr, rad, *, margin_px=2.0):
     return np.where(inside, gap.min(axis=1), -np.inf)
 
 
-def draw_case(seed: int, *, cols=512, n_views=36, vary_physics=True):
-    """A random instrument, object pose, CMM error and physics (all from `seed`)."""
+def draw_case(seed: int, *, cols=512, n_views=36, vary_physics=True, object_tilt_deg=0.5):
+    """A random instrument, object pose, CMM error and physics (all from `seed`).
+
+    ``object_tilt_deg``: the object (and its body tube) leans off the rotation axis by up to this much
+    about X and Z each (rho_X, rho_Z)."""
     rng = np.random.default_rng(seed)
     ids, c_file, diam, u_c = load_reference()
     srd = rng.uniform(0.30, 0.70)
@@ -361,8 +364,7 @@ def draw_case(seed: int, *, cols=512, n_views=36, vary_physics=True):
                   *(rng.uniform(-0.6, 0.6, 3) * DEG),
                   rng.uniform(-1e-3, 1e-3), rng.uniform(-1e-3, 1e-3), z_r + rng.uniform(-1e-3, 1e-3),
                   0.0, rng.uniform(0, 2 * math.pi), 0.0])
-    tilt_big = vary_physics and rng.random() < 0.3          # the body tube tilted well off the axis
-    w[10], w[12] = rng.uniform(-1, 1, 2) * (8 * DEG if tilt_big else 0.5 * DEG)
+    w[10], w[12] = rng.uniform(-1, 1, 2) * object_tilt_deg * DEG
     extent = np.max(np.linalg.norm(c_file, axis=1)) + 0.004
     mag = sdd / (z_r - extent)                               # worst case: the nearest sphere
     pitch = round(2 * 1.08 * extent * mag / cols, 6)         # the object's projection fills the detector
