@@ -3,7 +3,7 @@
 Three random instruments rendered by ct_indep_gen.py (its own ray tracing, beam hardening, PSF with an
 exponential tail, heel / fall-off flat field, holders; nothing from ct_calib_nodes), 24 projections on a
 384 x 384 detector, each through the user's command ``ct_offline_solve`` (a subprocess) and compared with
-the truth by ct_indep_check.py. The full campaign (24 instruments, 36 projections, 512 px):
+the truth by ct_indep_check.py. The full campaign (22 instruments, 30 projections, 384 px):
 tests/benchmarks/validate_ct_indep.py; figures in ros_ws/src/ct_calib_nodes/doc/ct_detect.md,
 "Independent renderer check".
 """
