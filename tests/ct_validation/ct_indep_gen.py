@@ -11,8 +11,8 @@ own physics. It imports NOTHING from ct_calib_nodes (numpy / scipy / yaml + the 
 * ray tracing per detector sample: exact chord lengths through steel spheres, a hollow CFRP body tube
   (the spheres sit on it), an optional hollow CFRP support rod at any tilt, an optional PMMA plate;
 * a polychromatic beam (three energies: beam hardening) with this module's attenuation values;
-* pixel integration: 2 x 2 samples everywhere, 5 x 5 on every sphere shadow and wherever the 2 x 2
-  samples disagree (holder edges);
+* pixel integration: pixel centres inside each holder's outline, then 4 x 4 samples on every sphere's
+  shadow box and on every pixel next to a holder edge (a step above 0.002 to a neighbour);
 * a detector PSF of its own form: Gaussian core + exponential tail (scatter / glare);
 * non-uniform open beam (anode heel gradient + radial fall-off), Poisson counts, Gaussian read noise,
   mono16 counts (or 32FC1 transmission from a flat field measured by averaging open-beam frames).
@@ -280,8 +280,8 @@ class Renderer:
         Pixel centres first (holders only); then every pixel of a sphere shadow's box and every pixel
         next to a holder edge (a step above 0.002 to a neighbour) is integrated on n_fine x n_fine samples."""
         inst = self.inst
-        cr = inst.project(self.sphere_centres(alpha))
-        rad = _shadow_radius_px(inst, self.sphere_centres(alpha), self.radii)
+        c_srf = self.sphere_centres(alpha)
+        cr, rad = inst.project(c_srf), _shadow_radius_px(inst, c_srf, self.radii)
         rr, cc = np.mgrid[0 : inst.rows, 0 : inst.cols]
         img = np.ones(rr.shape)
         m, t = inst.object_to_srf(alpha)
