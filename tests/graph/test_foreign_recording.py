@@ -22,6 +22,8 @@ from ct_calib_nodes.core.phantom import CarbonTube, helix49
 from ct_calib_nodes.core.render import RenderSettings, render_projection
 from ct_calib_nodes.core.scenario import default_campaign
 
+from ct_foreign_writer import write_ct_recording
+
 pytestmark = pytest.mark.ros
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 BIN = ROOT / "ros_ws" / "install" / "ct_calib_nodes" / "lib" / "ct_calib_nodes"
@@ -31,52 +33,25 @@ DET = DetectorSpec(1024, 1024, 0.0004)
 
 
 def _write_foreign_recording(bag_dir: pathlib.Path, camp):
-    from rosbags.rosbag2 import StoragePlugin, Writer
-    from rosbags.typesys import Stores, get_typestore
-
-    ts = get_typestore(Stores.ROS2_JAZZY)
-    Image = ts.types["sensor_msgs/msg/Image"]
-    JointState = ts.types["sensor_msgs/msg/JointState"]
-    Header = ts.types["std_msgs/msg/Header"]
-    Time = ts.types["builtin_interfaces/msg/Time"]
-    Log = ts.types["rcl_interfaces/msg/Log"]
-
     ref = helix49()                                   # spheres + the carbon-fibre tube
     assert isinstance(ref.tube, CarbonTube)
     rng = np.random.default_rng(404)
     settings = RenderSettings()
     alphas = np.linspace(0.0, 2 * np.pi, N_PROJ, endpoint=False) + 0.05
-    pad = 64                                          # bytes of padding at the end of every row
-    with Writer(bag_dir, version=9, storage_plugin=StoragePlugin.MCAP) as w:
-        c_log = w.add_connection("/rosout", "rcl_interfaces/msg/Log", typestore=ts)
-        c_js = w.add_connection("/ct/stage/joint_states", "sensor_msgs/msg/JointState", typestore=ts)
-        c_img = w.add_connection("/ct/detector/image", "sensor_msgs/msg/Image", typestore=ts)
-        t0 = 1_700_000_000_000_000_000
-        n = 0
+    t0 = 1_700_000_000_000_000_000
+
+    def frames():
         for k in range(N_POS):
             for j, a in enumerate(alphas):
                 fr = render_projection(camp.static_w, camp.motions[k], a, ref, DET, settings, rng,
                                        output="transmission")
-                t = t0 + n * 250_000_000
-                n += 1
-                stamp = Time(sec=t // 10**9, nanosec=t % 10**9)
-                img = np.asarray(fr.image, dtype="<f4")
-                rows = np.zeros((img.shape[0], img.shape[1] * 4 + pad), dtype=np.uint8)
-                rows[:, : img.shape[1] * 4] = img.view(np.uint8).reshape(img.shape[0], -1)
-                im = Image(header=Header(stamp=stamp, frame_id="xray_panel_2"), height=img.shape[0],
-                           width=img.shape[1], encoding="32FC1", is_bigendian=0, step=img.shape[1] * 4 + pad,
-                           data=rows.ravel())
-                js = JointState(header=Header(stamp=stamp, frame_id=""), name=["rotary", "magnification"],
-                                position=np.array([a, camp.srd_reported_m[k]]), velocity=np.zeros(0),
-                                effort=np.zeros(0))
-                log = Log(stamp=stamp, level=20, name="acq", msg=f"frame {n}", file="", function="", line=0)
-                pairs = [(c_js, ts.serialize_cdr(js, "sensor_msgs/msg/JointState")),
-                         (c_img, ts.serialize_cdr(im, "sensor_msgs/msg/Image"))]
-                if n % 3 == 0:                        # stage reading after the frame, sometimes late
-                    pairs.reverse()
-                w.write(c_log, t, ts.serialize_cdr(log, "rcl_interfaces/msg/Log"))
-                for conn, data in pairs:
-                    w.write(conn, t + 1_000_000 * (conn is c_img), data)
+                yield (t0 + (k * N_PROJ + j) * 250_000_000, np.asarray(fr.image, dtype=np.float32), a,
+                       camp.srd_reported_m[k])
+
+    # 64 bytes of padding at the end of every row, another frame_id, an unrelated topic, images logged
+    # 1 ms after their stamp and every third stage reading logged after its frame
+    write_ct_recording(bag_dir, frames(), frame_id="xray_panel_2", row_pad_bytes=64, log_topic=True,
+                       stage_late_every=3, image_delay_ns=1_000_000)
 
 
 def _write_foreign_yaml(bag_dir: pathlib.Path, ref):
