@@ -9,17 +9,20 @@ RenderSettings switch the solver and the engine are never told about.
 from __future__ import annotations
 
 import dataclasses
+import pathlib
+import sys
 import time
 
 import numpy as np
 
 from ct_calib_nodes.core import ct_discrepancy, render_effects as fx
-from ct_calib_nodes.core.ct_pipeline import CampaignAccumulator, FrameProcessor
-from ct_calib_nodes.core.detect import FrameError
 from ct_calib_nodes.core.geometry import DetectorSpec
 from ct_calib_nodes.core.phantom import helix49
 from ct_calib_nodes.core.render import RenderSettings, render_projection
 from ct_calib_nodes.core.static_solver import solve_static
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))    # tests/: the shared detect_views
+from ct_views import detect_views  # noqa: E402
 
 DEG = np.pi / 180.0
 ARCSEC = DEG / 3600.0
@@ -122,35 +125,26 @@ def render_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_view
     ref = helix49()
     obj = dataclasses.replace(ref, tube=ref.tube if phys["tube"] else None)
     settings = RenderSettings(flat_field_counts=phys["flat_field_counts"], blur_sigma_px=phys["blur_sigma_px"], **kw)
-    proc = FrameProcessor(ref, det, SDD, phys["flat_field_counts"])
-    acc = CampaignAccumulator()
-
-    def take(results):
-        for fr in results:
-            ids, uv, sig, minor = fr.accepted()
-            idx = np.searchsorted(ref.ids, ids) if len(ids) else np.zeros(0, np.int64)
-            acc.add_frame(fr.stamp_ns, fr.alpha_rad, fr.srd_reported_m, idx, uv, sig, 0, minor)
-
-    kept, prev = {}, None
+    kept = {}
     keep = set(keep_frames)
-    for j, a in enumerate(np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)):
-        t = j * frame_dt_s - duration / 2               # renderer time 0 at mid-scan (see effect_settings)
-        frame = render_projection(w, np.zeros(6), a, obj, det, settings, rng, time_s=t)
-        image = frame.image
-        if image_effect is not None:
-            raw = image.astype(np.float32)
-            image = np.clip(np.rint(_image_effect(image_effect[0], image_effect[1], raw, prev, phys["flat_field_counts"],
-                                                  t / duration if duration > 0 else 0.0)), 0, 65535).astype(np.uint16)
-            prev = raw
-        stamp = STAMP0_NS + int(round(t * 1e9))
-        if j in keep:
-            kept[j] = ImageFrame(image.astype(np.float32) / np.float32(phys["flat_field_counts"]), float(a), stamp)
-        try:
-            take(proc.push(stamp, image, "mono16", a, srd))
-        except FrameError:
-            continue
-    take(proc.flush())
-    obs = acc.positions[0].observations()
+
+    def views():
+        prev = None
+        for j, a in enumerate(np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)):
+            t = j * frame_dt_s - duration / 2               # renderer time 0 at mid-scan (see effect_settings)
+            image = render_projection(w, np.zeros(6), a, obj, det, settings, rng, time_s=t).image
+            if image_effect is not None:
+                raw = image.astype(np.float32)
+                image = np.clip(np.rint(_image_effect(image_effect[0], image_effect[1], raw, prev,
+                                                      phys["flat_field_counts"], t / duration if duration > 0 else 0.0)),
+                                0, 65535).astype(np.uint16)
+                prev = raw
+            stamp = STAMP0_NS + int(round(t * 1e9))
+            if j in keep:
+                kept[j] = ImageFrame(image.astype(np.float32) / np.float32(phys["flat_field_counts"]), float(a), stamp)
+            yield stamp, image, a, srd
+
+    obs = detect_views(views(), ref, det, SDD, phys["flat_field_counts"]).positions[0].observations()
     return obs, {"w": w, "srd": srd, "sdd": SDD, "effect": effect, "term": term, "magnitude": mag,
                  "physics": phys, "ref": ref, "det": det, "frames": kept, "image_effect": image_effect,
                  "scan_ns": (STAMP0_NS + int(round(-duration / 2 * 1e9)), STAMP0_NS + int(round(duration / 2 * 1e9)))}
@@ -182,14 +176,33 @@ def analyse_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_vie
     return out, truth
 
 
+def noisy_centres(w, motion, alphas, times_s, ref, settings, rng, sigma, tau, stated):
+    """Feature-level views: the renderer's exact ellipse centres (``frame_truth``) of the usable spheres with
+    detection-like noise of sd ``sigma`` px, a shift of sd ``tau`` shared by each view's spheres, and a stated
+    sigma ``stated`` (what a detector would claim). Returns CentreObservations stamped at ``times_s``."""
+    from ct_calib_nodes.core.observations import CentreObservations  # noqa: PLC0415
+    from ct_calib_nodes.core.render import frame_truth  # noqa: PLC0415
+
+    uv, idx, minor, sig, stamps = [], [], [], [], []
+    for a, t in zip(alphas, times_s):
+        ft = frame_truth(w, motion, a, ref, DET, settings, time_s=t)
+        use = np.flatnonzero(ft.usable)
+        shift = rng.normal(0.0, tau, 2) if tau > 0 else np.zeros(2)
+        uv.append(ft.ellipse_centre_px[use] + rng.normal(0.0, sigma, (use.size, 2)) + shift)
+        idx.append(use)
+        minor.append(ft.semi_axes_px[use, 1])
+        sig.append(np.full(use.size, stated))
+        stamps.append(STAMP0_NS + int(round(t * 1e9)))
+    return CentreObservations.from_views(uv, idx, np.asarray(alphas), stamp_ns_per_view=np.array(stamps, dtype=np.int64),
+                                         sigma_px_per_view=sig, minor_axis_px_per_view=minor)
+
+
 def truth_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_views: int = 72, frame_dt_s: float = 1.0):
     """Feature-level recording: the renderer's exact truth (render.frame_truth, hidden physics applied, no image)
     plus detection-like noise of a random size, a random per-projection shared shift and a misstated sigma.
 
     Fast (milliseconds per view); the image-level path is :func:`render_campaign`. Returns (obs, truth).
     """
-    from ct_calib_nodes.core.observations import CentreObservations  # noqa: PLC0415
-    from ct_calib_nodes.core.render import frame_truth  # noqa: PLC0415
 
     rng = np.random.default_rng(seed)
     w, srd = draw_instrument(rng)
@@ -200,20 +213,8 @@ def truth_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_views
     stated = sigma * float(rng.uniform(0.6, 1.6))
     ref = helix49()
     settings = RenderSettings(**kw)
-    uv, idx, minor, sig, alphas, stamps = [], [], [], [], [], []
-    for j, a in enumerate(np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)):
-        t = j * frame_dt_s - duration / 2
-        ft = frame_truth(w, np.zeros(6), a, ref, DET, settings, time_s=t)
-        use = np.flatnonzero(ft.usable)
-        shift = rng.normal(0.0, tau, 2) if tau > 0 else np.zeros(2)
-        uv.append(ft.ellipse_centre_px[use] + rng.normal(0.0, sigma, (use.size, 2)) + shift)
-        idx.append(use)
-        minor.append(ft.semi_axes_px[use, 1])
-        sig.append(np.full(use.size, stated))
-        alphas.append(a)
-        stamps.append(STAMP0_NS + int(round(t * 1e9)))
-    obs = CentreObservations.from_views(uv, idx, np.array(alphas), stamp_ns_per_view=np.array(stamps, dtype=np.int64),
-                                        sigma_px_per_view=sig, minor_axis_px_per_view=minor)
+    obs = noisy_centres(w, np.zeros(6), np.linspace(0.0, 2 * np.pi, n_views, endpoint=False),
+                        np.arange(n_views) * frame_dt_s - duration / 2, ref, settings, rng, sigma, tau, stated)
     return obs, {"w": w, "srd": srd, "sdd": SDD, "effect": effect, "term": term, "magnitude": mag,
                  "physics": {"sigma_px": sigma, "shared_px": tau, "stated_px": stated}, "ref": ref}
 
@@ -238,8 +239,6 @@ def truth_multi_campaign(seed: int, n_positions: int = 4, n_views: int = 48, fra
 
     Returns (positions [(srd_reported_m, CentreObservations)], truth dict).
     """
-    from ct_calib_nodes.core.observations import CentreObservations  # noqa: PLC0415
-    from ct_calib_nodes.core.render import frame_truth  # noqa: PLC0415
 
     rng = np.random.default_rng(seed)
     w, srd = draw_instrument(rng, srd_range=(0.30, 0.34))
@@ -258,21 +257,8 @@ def truth_multi_campaign(seed: int, n_positions: int = 4, n_views: int = 48, fra
         m[2] += k * step_m                             # along {DF} +Z, towards the detector: the SRD grows
         motions.append(m)
         t0 = k * (scan + gap_s) - 0.5 * campaign       # renderer time 0 = campaign middle
-        uv, idx, minor, sig, alphas, stamps = [], [], [], [], [], []
-        for j, a in enumerate(np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)):
-            t = t0 + j * frame_dt_s
-            ft = frame_truth(w, m, a, ref, DET, settings, time_s=t)
-            use = np.flatnonzero(ft.usable)
-            shift = rng.normal(0.0, tau, 2) if tau > 0 else np.zeros(2)
-            uv.append(ft.ellipse_centre_px[use] + rng.normal(0.0, sigma, (use.size, 2)) + shift)
-            idx.append(use)
-            minor.append(ft.semi_axes_px[use, 1])
-            sig.append(np.full(use.size, stated))
-            alphas.append(a)
-            stamps.append(STAMP0_NS + int(round(t * 1e9)))
-        obs = CentreObservations.from_views(uv, idx, np.array(alphas),
-                                            stamp_ns_per_view=np.array(stamps, dtype=np.int64),
-                                            sigma_px_per_view=sig, minor_axis_px_per_view=minor)
+        obs = noisy_centres(w, m, np.linspace(0.0, 2 * np.pi, n_views, endpoint=False),
+                            t0 + np.arange(n_views) * frame_dt_s, ref, settings, rng, sigma, tau, stated)
         positions.append((srd + k * step_m, obs))
     return positions, {"w": w, "srd": srd, "sdd": SDD, "ref": ref, "motions": motions,
                        "focal_drift_um": focal_drift_um, "focal_rate_m_per_s": rate,
@@ -300,29 +286,20 @@ def render_multi_campaign(seed: int, n_positions: int = 3, n_views: int = 36, fr
     obj = dataclasses.replace(ref, tube=ref.tube if phys["tube"] else None)
     settings = RenderSettings(flat_field_counts=phys["flat_field_counts"], blur_sigma_px=phys["blur_sigma_px"],
                               focal_spot_drift_m_per_s=tuple(rate))
-    proc = FrameProcessor(ref, det, SDD, phys["flat_field_counts"])
-    acc = CampaignAccumulator()
-
-    def take(results):
-        for fr in results:
-            ids, uv, sig, minor = fr.accepted()
-            idx = np.searchsorted(ref.ids, ids) if len(ids) else np.zeros(0, np.int64)
-            acc.add_frame(fr.stamp_ns, fr.alpha_rad, fr.srd_reported_m, idx, uv, sig, 0, minor)
-
     motions = []
-    for k in range(n_positions):
-        m = np.zeros(6) if k == 0 else np.concatenate([rng.normal(0, 3e-6, 3), rng.normal(0, 3 * ARCSEC, 3)])
-        m[2] += k * step_m
-        motions.append(m)
-        t0 = k * (scan + gap_s) - 0.5 * campaign
-        for j, a in enumerate(np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)):
-            t = t0 + j * frame_dt_s
-            frame = render_projection(w, m, a, obj, det, settings, rng, time_s=t)
-            try:
-                take(proc.push(STAMP0_NS + int(round(t * 1e9)), frame.image, "mono16", a, srd + k * step_m))
-            except FrameError:
-                continue
-    take(proc.flush())
+
+    def views():
+        for k in range(n_positions):
+            m = np.zeros(6) if k == 0 else np.concatenate([rng.normal(0, 3e-6, 3), rng.normal(0, 3 * ARCSEC, 3)])
+            m[2] += k * step_m
+            motions.append(m)
+            t0 = k * (scan + gap_s) - 0.5 * campaign
+            for j, a in enumerate(np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)):
+                t = t0 + j * frame_dt_s
+                frame = render_projection(w, m, a, obj, det, settings, rng, time_s=t)
+                yield STAMP0_NS + int(round(t * 1e9)), frame.image, a, srd + k * step_m
+
+    acc = detect_views(views(), ref, det, SDD, phys["flat_field_counts"])
     positions = [(p.srd_reported_m, p.observations()) for p in acc.positions]
     return positions, {"w": w, "srd": srd, "sdd": SDD, "ref": ref, "motions": motions, "physics": phys,
                        "focal_drift_um": focal_drift_um, "focal_rate_m_per_s": rate,

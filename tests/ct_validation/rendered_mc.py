@@ -16,15 +16,18 @@ and the truth, for the ellipse-centre model (now) and the centre-projection mode
 from __future__ import annotations
 
 import dataclasses
+import pathlib
+import sys
 
 import numpy as np
 
-from ct_calib_nodes.core.ct_pipeline import CampaignAccumulator, FrameProcessor
-from ct_calib_nodes.core.detect import FrameError
 from ct_calib_nodes.core.geometry import DetectorSpec
 from ct_calib_nodes.core.phantom import helix49
 from ct_calib_nodes.core.render import RenderSettings, render_projection
 from ct_calib_nodes.core.static_solver import solve_static
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))    # tests/: the shared detect_views
+from ct_views import detect_views  # noqa: E402
 
 DEG = np.pi / 180.0
 SDD = 1.04821
@@ -75,27 +78,6 @@ def draw_scene(rng, cmm_u_m: float):
     return phys, ref_file, true_obj, settings
 
 
-def detect_views(views, ref_file, det, sdd, flat_field_counts) -> CampaignAccumulator:
-    """Detection and identity on (mono16 image, alpha, reported SRD) views in order, as the offline tool
-    pairs them (one stamp per view); unusable frames are skipped. Returns the campaign's observations."""
-    proc = FrameProcessor(ref_file, det, sdd, flat_field_counts)
-    acc = CampaignAccumulator()
-
-    def take(results):
-        for fr in results:
-            ids, uv, sig, minor = fr.accepted()
-            idx = np.searchsorted(ref_file.ids, ids) if len(ids) else np.zeros(0, np.int64)
-            acc.add_frame(fr.stamp_ns, fr.alpha_rad, fr.srd_reported_m, idx, uv, sig, 0, minor)
-
-    for i, (image, alpha, srd) in enumerate(views, start=1):
-        try:
-            take(proc.push(i * 100_000_000, image, "mono16", alpha, srd))
-        except FrameError:
-            continue
-    take(proc.flush())
-    return acc
-
-
 def run_trial(seed: int, n_views: int = 72, detector: DetectorSpec | None = None, cmm_u_m: float = 1e-6) -> Trial:
     rng = np.random.default_rng(seed)
     det = detector or DetectorSpec(1024, 1024, 0.0004)
@@ -103,7 +85,8 @@ def run_trial(seed: int, n_views: int = 72, detector: DetectorSpec | None = None
     phys, ref_file, true_obj, settings = draw_scene(rng, cmm_u_m)
     trial = Trial(w_true=w, srd_reported_m=srd, physics=phys)
     alphas = np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)
-    views = ((render_projection(w, np.zeros(6), a, true_obj, det, settings, rng).image, a, srd) for a in alphas)
+    views = (((i + 1) * 100_000_000, render_projection(w, np.zeros(6), a, true_obj, det, settings, rng).image, a, srd)
+             for i, a in enumerate(alphas))
     acc = detect_views(views, ref_file, det, sdd, phys["flat_field_counts"])
     if not acc.positions:
         trial.outcome, trial.message = "no_data", "no frame usable"
@@ -168,8 +151,8 @@ def run_error_map_trial(seed: int, n_positions: int = 7, n_views: int = 36,
     errors = paper_like_stage_errors(travel) * np.array([rng.uniform(0.2, 1.0)] * 3 + [1.0] * 3)
     motions = stage_motions(travel, travel_df, errors)
     alphas = np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)
-    views = ((render_projection(w, motions[k], a, true_obj, det, settings, rng).image, a, srd[k])
-             for k in range(n_positions) for a in alphas)
+    views = (((k * n_views + i + 1) * 100_000_000, render_projection(w, motions[k], a, true_obj, det, settings, rng).image,
+              a, srd[k]) for k in range(n_positions) for i, a in enumerate(alphas))
     acc = detect_views(views, ref_file, det, sdd, phys["flat_field_counts"])
     out = {"seed": seed, "physics": phys, "srd_m": srd.tolist(), "ok": False}
     st = solve_static(acc.positions[0].observations(), ref_file.centres_of_m, det, srd[0], sdd,
