@@ -10,7 +10,8 @@ Phase 2 calibrates each (acquisition, CameraInfo) pair exactly as picms_calibrat
 runs the discrepancy engine; the engine and the calibration see only the recording.
 
 Acquisitions: `grid` (grid_pattern(), 33 stations, +-6 / +-4 mm travel), `small` (the same grid at
-+-1 / +-0.7 mm: too little travel and field for lens, aspect and stage-scale terms) and `short`
++-1 / +-0.7 mm: too little travel and field for the lens and stage-scale terms; a 1e-3 aspect error
+still shows there) and `short`
 (a 3 x 3 x 2 grid, 19 stations, with a 4 x faster stage: a 3 x shorter session, too short for the drift). Effects
 (hidden from the engine; realistic magnitudes):
 
