@@ -26,7 +26,7 @@ import numpy as np
 
 from .ct_model import StaticKernel
 from .discrepancy import (BIC_THRESHOLD, Candidate, Dataset, _orth, analyse, locate, required_noncentrality,
-                          sigma_from_chi2)
+                          sigma_from_chi2, verdict_sentence)
 from .geometry import STATIC_PARAM_NAMES, DetectorSpec, motion_rotation, static_to_detector_frame
 from .observations import CentreObservations
 
@@ -514,31 +514,12 @@ def run(obs: CentreObservations, static, detector: DetectorSpec, *, progress=Non
     fl = res["floor"]
     floor_d = fl.to_dict("px")
     floor_d["stated_sigma_median_px"] = fl.sigma_median
-    if adequate:
-        best = min(((lim["limit"], i) for i, lim in limits.items() if lim.get("limit")), default=None)
-        verdict = (f"No significant discrepancy: the nominal model explains the {obs.n_obs} sphere centres down to "
-                   f"the noise floor ({fl.factor[0] * fl.sigma_median:.3g} / {fl.factor[1] * fl.sigma_median:.3g} px "
-                   f"in columns / rows); e.g. no focal-spot drift above "
-                   f"{_fmt(limits['focal_spot_drift']['limit'] or np.inf, 'um')} over the scan and no detector bow "
-                   f"above {_fmt(limits['detector_bow']['limit'] or np.inf, 'mm')} sag.")
-    elif findings:
-        f0 = findings[0]
-        alt = f" (or, indistinguishable here, {', '.join(CATALOGUE_BY_ID[d].name for d in f0['degenerate_with'])})" \
-            if f0["degenerate_with"] else ""
-        verdict = (f"The nominal model leaves out {f0['name']}{alt}: {_fmt(f0['magnitude'], f0['magnitude_unit'])} "
-                   f"at {f0['significance_sigma']:.1f} sigma; with it the held-out residual falls from "
-                   f"{res['before']['held_out_rms']:.4g} to {after['held_out_rms']:.4g} px "
-                   f"(noise floor {fl.factor[0] * fl.sigma_median:.3g} px).")
-        if len(findings) > 1:
-            verdict += " Also: " + "; ".join(f"{f['name']} ({_fmt(f['magnitude'], f['magnitude_unit'])})"
-                                             for f in findings[1:]) + "."
-        if unexplained:
-            verdict += f" Structure along {unexplained[0]['axis']} remains unexplained."
-    else:
-        e = unexplained[0]
-        verdict = (f"Structure beyond the noise floor along {e['axis']} ({e['significance_sigma']:.1f} sigma, "
-                   f"{e['amplitude_rms_px']:.3g} px rms) that no catalogue term explains; absorbed only by an "
-                   f"empirical term, physics unknown.")
+    verdict = verdict_sentence(
+        findings, unexplained, name_of={t.id: t.name for t in CATALOGUE}, n_obs=obs.n_obs, obs_noun="sphere centres",
+        floor_sd=fl.factor[:2] * fl.sigma_median, floor_axes="columns / rows",
+        held_out_before=res["before"]["held_out_rms"], held_out_after=after["held_out_rms"],
+        clean_examples=(f"no focal-spot drift above {_fmt(limits['focal_spot_drift']['limit'] or np.inf, 'um')} over "
+                        f"the scan and no detector bow above {_fmt(limits['detector_bow']['limit'] or np.inf, 'mm')} sag"))
     names = list(STATIC_PARAM_NAMES)
     x_before = np.asarray(static.x[:13], dtype=float)
     sd_after = None if cov_after is None else np.sqrt(np.maximum(np.diag(cov_after)[:13], 0))

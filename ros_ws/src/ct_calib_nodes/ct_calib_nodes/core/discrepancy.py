@@ -61,6 +61,8 @@ class Dataset:
     fold : (n,) int, cross-validation fold (contiguous blocks of groups).
     empirical : dict name -> (n, k) bases of the locate axes.
     unit : str, the residual unit ("px").
+    rms_rows : (n,) bool or None: the rows the fit and held-out RMS are stated over (all when None; an
+        adapter with residual blocks in other units, e.g. tracker readings in um, keeps them to ``unit``).
     """
 
     residual: np.ndarray
@@ -73,6 +75,12 @@ class Dataset:
     fold: np.ndarray
     empirical: dict = field(default_factory=dict)
     unit: str = "px"
+    rms_rows: np.ndarray | None = None
+
+    def rms(self, r) -> float:
+        """RMS of a residual vector over ``rms_rows`` [unit]."""
+        r = np.asarray(r, dtype=float)
+        return float(np.sqrt(np.mean(np.square(r if self.rms_rows is None else r[self.rms_rows]))))
 
 
 @dataclass
@@ -153,7 +161,7 @@ def noise_floor(ds: Dataset) -> Floor:
                 t2 = 0.0
         t2 = min(max(t2, 0.0), 0.95 * s_tot ** 2)
         factor[a] = np.sqrt(max(s_tot ** 2 - t2, 1e-30))
-        tau[a] = np.sqrt(t2) * med
+        tau[a] = np.sqrt(t2) * float(np.median(ds.sigma[rows]))     # the component's own unit
     return Floor(factor=factor, tau=tau, sigma_median=med, n_pairs=int(len(i)))
 
 
@@ -250,15 +258,18 @@ def _cv(ctx: Context, extra: list, raw_extra: list):
     ds = ctx.ds
     xw = np.hstack([ctx.x0] + extra) if extra else ctx.x0
     xr = np.hstack([ds.jac] + raw_extra) if raw_extra else ds.jac
-    chi2, sq, n = 0.0, 0.0, 0
+    chi2, sq, n, n_rms = 0.0, 0.0, 0, 0
+    keep = np.ones(ds.residual.size, bool) if ds.rms_rows is None else np.asarray(ds.rms_rows, bool)
     for f in np.unique(ds.fold):
         te = ds.fold == f
         tr = ~te
         beta = _fit(ctx.z[tr], xw[tr])
         chi2 += float(np.sum((ctx.z[te] - xw[te] @ beta) ** 2))
-        sq += float(np.sum((ds.residual[te] - xr[te] @ beta) ** 2))
+        tk = te & keep
+        sq += float(np.sum((ds.residual[tk] - xr[tk] @ beta) ** 2))
         n += int(te.sum())
-    return chi2 / max(n, 1), np.sqrt(sq / max(n, 1))
+        n_rms += int(tk.sum())
+    return chi2 / max(n, 1), np.sqrt(sq / max(n_rms, 1))
 
 
 def make_context(ds: Dataset, floor: Floor | None = None) -> Context:
@@ -316,7 +327,7 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
     r_before = ds.residual - ds.jac @ beta0
     dof0 = max(ctx.n - q0.shape[1], 1)
     cvchi0, cvrms0 = _cv(ctx, [], [])
-    before = {"rms": float(np.sqrt(np.mean(r_before ** 2))), "chi2_dof": float(zp0 @ zp0 / dof0),
+    before = {"rms": ds.rms(r_before), "chi2_dof": float(zp0 @ zp0 / dof0),
               "held_out_rms": cvrms0, "held_out_chi2_dof": cvchi0}
     say(f"noise floor: factor {np.round(ctx.floor.factor, 3).tolist()} of stated sigma, shared "
         f"{np.round(ctx.floor.tau, 4).tolist()} {ds.unit}; chi2/dof against it {before['chi2_dof']:.3f}")
@@ -401,7 +412,7 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
     r_after = ds.residual - xr @ beta
     dof_a = max(ctx.n - q_after.shape[1], 1)
     cvchi1, cvrms1 = _cv(ctx, [cand_w[i] for i in chosen], [by_id[i].basis for i in chosen])
-    after = {"rms": float(np.sqrt(np.mean(r_after ** 2))), "chi2_dof": float(za @ za / dof_a),
+    after = {"rms": ds.rms(r_after), "chi2_dof": float(za @ za / dof_a),
              "held_out_rms": cvrms1, "held_out_chi2_dof": cvchi1}
     # ---- unexplained structure
     remaining = [e for e in locate(ctx, q_after, ds.empirical) if e["delta_bic"] >= bic_threshold]
@@ -416,8 +427,12 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
         scale = np.asarray(c.display_scale, dtype=float)
         fisher = (bp / scale).T @ (bp / scale)               # in display units
         raw = (bw / scale).T @ (bw / scale)
-        ev = np.linalg.eigvalsh(fisher)
-        evr = np.linalg.eigvalsh(raw)
+        evr, vr = np.linalg.eigh(raw)
+        # directions the term's own basis does not respond to (a constrained parametrisation, e.g.
+        # traceless) are not detection directions: restrict to the range of its raw information
+        rng_ = evr > 1e-12 * max(evr.max(), 1e-300)
+        ev = np.linalg.eigvalsh(vr[:, rng_].T @ fisher @ vr[:, rng_]) if rng_.any() else np.zeros(1)
+        evr = evr[rng_] if rng_.any() else np.zeros(1)
         absorbed = 1.0 - (ev.min() / evr.max() if evr.max() > 0 else 0.0)
         lim = float(np.sqrt(lam / ev.min())) if ev.min() > 1e-300 else np.inf
         limits[c.id] = {"limit": lim, "unit": c.magnitude_unit, "absorbed_fraction": float(absorbed),
@@ -426,3 +441,46 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
     return {"context": ctx, "floor": ctx.floor, "located": located, "findings": findings, "chosen": chosen,
             "beta": beta, "cov": cov, "before": before, "after": after, "unexplained": remaining,
             "limits": limits, "n": ctx.n, "implausible": implausible}
+
+
+def _fmt(v, unit):
+    return f"{v:.3g} {unit}"
+
+
+def verdict_sentence(findings: list, unexplained: list, *, name_of: dict, n_obs: int, obs_noun: str,
+                     floor_sd, floor_axes: str, held_out_before: float, held_out_after: float,
+                     clean_examples: str, unit: str = "px") -> str:
+    """The one-sentence verdict every adapter writes first in its report.
+
+    findings: dicts with name, magnitude, magnitude_unit, significance_sigma, degenerate_with (term ids);
+    unexplained: dicts with axis, significance_sigma, amplitude_rms_px; name_of: term id -> name;
+    floor_sd: (2,) independent noise floor per image axis [unit]; clean_examples: the adapter's "no X above
+    L and no Y above M" clause for the no-discrepancy case.
+    """
+    if not findings and not unexplained:
+        return (f"No significant discrepancy: the nominal model explains the {n_obs} {obs_noun} down to the "
+                f"noise floor ({floor_sd[0]:.3g} / {floor_sd[1]:.3g} {unit} in {floor_axes}); e.g. {clean_examples}.")
+    if findings:
+        f0 = findings[0]
+        alt = (f" (or, indistinguishable here, {', '.join(name_of[d] for d in f0['degenerate_with'])})"
+               if f0["degenerate_with"] else "")
+        out = (f"The nominal model leaves out {f0['name']}{alt}: {_fmt(f0['magnitude'], f0['magnitude_unit'])} "
+               f"at {f0['significance_sigma']:.1f} sigma; with it the held-out residual falls from "
+               f"{held_out_before:.4g} to {held_out_after:.4g} {unit} (noise floor {floor_sd[0]:.3g} {unit}).")
+        if len(findings) > 1:
+            out += " Also: " + "; ".join(f"{f['name']} ({_fmt(f['magnitude'], f['magnitude_unit'])})"
+                                         for f in findings[1:]) + "."
+        if unexplained:
+            out += f" Structure along {unexplained[0]['axis']} remains unexplained."
+        return out
+    e = unexplained[0]
+    return (f"Structure beyond the noise floor along {e['axis']} ({e['significance_sigma']:.1f} sigma, "
+            f"{e['amplitude_rms_px']:.3g} {unit} rms) that no catalogue term explains; absorbed only by an "
+            f"empirical term, physics unknown.")
+
+
+def unexplained_entries(remaining: list) -> list:
+    """discrepancy.json ``unexplained`` entries from :func:`locate` results left after the named terms."""
+    return [{"axis": e["axis"], "significance_sigma": e["significance_sigma"], "delta_bic": e["delta_bic"],
+             "amplitude_rms_px": e["amplitude_rms"], "amplitude_max_px": e["amplitude_max"],
+             "absorbed_by": f"empirical:{e['axis']}"} for e in remaining]

@@ -379,20 +379,23 @@ def calibrate(stations: list[Station], camera_info: dict, cell: dict) -> Calibra
     def derived(x):
         mm = x[:-3].reshape(N, nc, 3)
         Sx = x[-3:]
-        U, X = [], []
+        U, X, W = [], [], []
         for i in range(N):
             R, t = kabsch(mm[0], mm[i])
             U.append(R.T @ (Sx - t) - Sx)
             X.append(R @ Sx + t)
-        return np.concatenate([np.ravel(U), np.ravel(X)])
+            W.append(matrix_to_rotvec(R))
+        return np.concatenate([np.ravel(U), np.ravel(X), np.ravel(W)])
 
     x0 = np.concatenate([means.ravel(), S_star])
     y, Jd = _num_jac(derived, x0, 1e-6)
     cov_y = (Jd * var_in) @ Jd.T
     U_T = y[:3 * N].reshape(N, 3)
-    X_T = y[3 * N:].reshape(N, 3)
+    X_T = y[3 * N:6 * N].reshape(N, 3)
     cov_U = cov_y[:3 * N, :3 * N]
-    cov_X = cov_y[3 * N:, 3 * N:]
+    cov_X = cov_y[3 * N:6 * N, 3 * N:6 * N]
+    W_T = y[6 * N:].reshape(N, 3)           # constellation rotation (tracker frame) since the reference
+    cov_W = cov_y[6 * N:, 6 * N:]
     res = []
     for i in range(N):
         R, t = kabsch(means[0], means[i])
@@ -524,4 +527,8 @@ def calibrate(stations: list[Station], camera_info: dict, cell: dict) -> Calibra
         tracker_sigma_m=float(sigma), rigid_fit_rms_m=rigid_rms, chi2_dof=float(chi2 / max(dof, 1)),
         n_stations=N, notes=tuple(notes), camera_cov=cov_cam,
         design={"U": U_fn(sq_est), "obs": obs, "obs_cov": obs_cov, "cov_U": cov_Uq, "cameras": cams,
-                "sq": sq_est, "sq_prior": prior})
+                "sq": sq_est, "sq_prior": prior,
+                # the tracker link, for the discrepancy engine: X* per station (tracker frame), the
+                # constellation's rotation since the reference, the encoder readings and station times
+                "X_T": X_T, "cov_X": cov_X, "W_T": W_T, "cov_W": cov_W, "q": q,
+                "t_ns": np.array([s.window.start_ns for s in good], np.int64)})

@@ -98,7 +98,7 @@ def simulate_session(truth: CellTruth, rng, *, pattern=None, dwell_s: float = 2.
         stamp = int(round(x * 1e9))
         for j, cam in enumerate(truth.cameras):
             if render:
-                img = render_frame(truth.camera_pose_at(j, q), cam.true_intrinsics, truth.physics, rng,
+                img = render_frame(truth.camera_pose_at(j, q, x), cam.true_intrinsics, truth.physics, rng,
                                    sphere_stage=truth.smr_star_stage, nest_axis_stage=truth.nest_axis_stage)
             else:
                 img = None

@@ -15,6 +15,10 @@ b + A q, where the columns of A are the unit travel directions (upper-triangular
 Hidden physics (off by default, never told to the solvers):
 - `hidden_distortion`: the lenses distort (true D) but CameraInfo carries D = 0.
 - `tracker_scale_ppm`: the tracker's lengths are scaled by (1 + s) about its origin.
+- `camera_tilt_drift_rad_per_s`, `camera_shift_drift_m_per_s`: each camera mount drifts steadily
+  during the session (thermal): it tilts about an axis perpendicular to its optical axis and its
+  centre moves, each in a random direction per camera (own generator seeded from the cell), at
+  these rates from the session start (t = 0 of `campaign.simulate_session`).
 Stage error motions (ON by default, `stage_error_motions`; never told to the solvers): scale,
 straightness and pitch/yaw/roll with Abbe offset (core/stage_errors.py) move every body point
 and camera as x(b, q) there instead of b + A q.
@@ -60,6 +64,9 @@ class Physics:
     stage_resolution_m: float = 6.0e-6
     tracker_distance_m: float = 2.4
     stage_error_motions: bool = True       # stage scale / straightness / angular errors (stage_errors.py)
+    stage_error_spec: object = None        # stage_errors.StageErrorSpec (None: its defaults)
+    camera_tilt_drift_rad_per_s: float = 0.0   # hidden physics: camera mount tilt drift rate
+    camera_shift_drift_m_per_s: float = 0.0    # hidden physics: camera centre drift rate
 
 
 def make_physics(rng, **overrides) -> Physics:
@@ -98,6 +105,7 @@ class CellTruth:
     nest_axis_stage: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))
     probe_body_R_stage: np.ndarray = field(default_factory=lambda: np.eye(3))  # 6-DOF target frame
     stage_errors: object = None      # stage_errors.StageErrors or None (rigid translation)
+    camera_drift: tuple = ()         # per camera (w (3,) rad/s, v (3,) m/s) in the stage frame, or ()
 
     def body_point_stage(self, b, q) -> np.ndarray:
         """Stage-frame position (3,) of body point b (3,) with the stage at true position q."""
@@ -113,12 +121,16 @@ class CellTruth:
         p = np.atleast_2d(np.asarray(p_stage, float))
         return p @ self.R_tracker_stage.T + self.p_tracker_stage
 
-    def camera_pose_at(self, j: int, q) -> CameraPose:
+    def camera_pose_at(self, j: int, q, t_s: float = 0.0) -> CameraPose:
+        """True pose of camera j with the stage at q, t_s seconds after the session start (drift)."""
         c = self.cameras[j]
+        R, C = c.pose.R_stage_camera, c.pose.p_stage_centre
+        if self.camera_drift:
+            w, v = self.camera_drift[j]
+            R, C = rotvec_to_matrix(np.asarray(w) * t_s) @ R, C + np.asarray(v) * t_s
         if self.stage_errors is not None:
-            return CameraPose(self.stage_errors.rotation(q) @ c.pose.R_stage_camera,
-                              self.stage_errors.point(self.A_travel, c.pose.p_stage_centre, q))
-        return CameraPose(c.pose.R_stage_camera, c.pose.p_stage_centre + self.A_travel @ np.asarray(q, float))
+            return CameraPose(self.stage_errors.rotation(q) @ R, self.stage_errors.point(self.A_travel, C, q))
+        return CameraPose(R, C + self.A_travel @ np.asarray(q, float))
 
     def tracker_sigma_m(self) -> float:
         p = self.physics
@@ -180,12 +192,22 @@ def make_cell(rng, physics: Physics | None = None) -> CellTruth:
         const[name] = np.array([r * np.cos(az), r * np.sin(az), rng.uniform(-0.03, 0.12)])
     R_probe = _random_rotation(rng)
     se = None
+    # own generators seeded from the cell: the draws above and the caller's stream are unchanged
+    seed = int.from_bytes(hashlib.sha256(A.tobytes() + p_ts.tobytes()).digest()[:8], "little")
     if p.stage_error_motions:
-        # own generator seeded from the cell: the draws above and the caller's stream are unchanged
-        seed = int.from_bytes(hashlib.sha256(A.tobytes() + p_ts.tobytes()).digest()[:8], "little")
-        se = make_stage_errors(seed)
+        se = make_stage_errors(seed, p.stage_error_spec)
+    drift = ()
+    if p.camera_tilt_drift_rad_per_s or p.camera_shift_drift_m_per_s:
+        drng = np.random.default_rng(seed + 1)
+        drift = []
+        for c in cams:
+            a = drng.uniform(0, 2 * np.pi)                    # tilt axis in the image plane
+            w = c.pose.R_stage_camera[:, 0] * np.cos(a) + c.pose.R_stage_camera[:, 1] * np.sin(a)
+            d = drng.standard_normal(3)
+            drift.append((w * p.camera_tilt_drift_rad_per_s, d / np.linalg.norm(d) * p.camera_shift_drift_m_per_s))
+        drift = tuple(drift)
     return CellTruth(p, tuple(cams), A, R_ts, p_ts, const, np.zeros(3),
-                     np.array([0.0, 0.0, -1.0]), R_probe, se)
+                     np.array([0.0, 0.0, -1.0]), R_probe, se, drift)
 
 
 def squareness_truth(A) -> dict:

@@ -3,16 +3,22 @@
 The cell-agnostic engine lives in ct_calib_nodes.core.discrepancy (numpy/scipy only; picms_nodes
 already depends on ct_calib_nodes, so it is imported from there rather than moved). This adapter
 turns a Pixel Probe CalibrationResult (its ``design``: target points U in the probe-body frame,
-the cameras' normalised disc observations and covariances, and the solved poses) into the
-engine's Dataset: residuals in pixels per camera, station and image axis; the Jacobian of the
-nominal parameters (three camera poses, six each, and the three stage squareness angles); the
-locate axes (station order = time, position on each sensor) and a catalogue of camera-side
-physical terms, each a linearised basis d(pixel)/d(theta).
+the cameras' normalised disc observations and covariances, the solved poses, and the tracker link)
+into the engine's Dataset with three residual blocks:
 
-Scope (honest): the terms act on the disc-centre (camera) residuals only. Tracker-side terms
-(length scale, SMR centring, angular encoder) need the tracker-link residuals and are not in
-this catalogue yet. The refit is the engine's linear joint fit (one Gauss-Newton step from the
-nominal estimate), adequate for the small terms here.
+- camera: observed minus modelled disc centre per camera, station and image axis [px];
+- tracker link: X* seen by the tracker at each station (constellation rigid fits) minus the rigid
+  stage model p0 + R_ts A(squareness) q of the encoder readings [um];
+- constellation rotation: the rigid fits' rotation of the probe body since the reference station,
+  which a rigidly translating stage keeps at zero [urad].
+
+Nominal parameters projected out: the three camera poses, the three squareness angles (shared by
+the camera and tracker blocks), X*'s position and the stage frame's orientation in the tracker
+frame, and the reference station's rotation (its noise is shared by every station's rotation).
+The catalogue holds camera, stage and tracker terms, each a linearised basis d(residual)/d(theta)
+on the blocks it acts on; a term with no basis on an acquisition reports why it cannot show.
+The refit is the engine's linear joint fit (one Gauss-Newton step from the nominal estimate),
+adequate for the small terms here.
 """
 from __future__ import annotations
 
@@ -20,22 +26,32 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ct_calib_nodes.core.discrepancy import BIC_THRESHOLD, Candidate, Dataset, analyse
+from ct_calib_nodes.core.discrepancy import (BIC_THRESHOLD, Candidate, Dataset, analyse, unexplained_entries,
+                                             verdict_sentence)
 
 from .calibrate import CalibrationResult, _skew, travel_matrix
 
 
 @dataclass(frozen=True)
 class PicmsTerm:
+    """One catalogue entry. Bases: ``cam(ctx, j) -> (m_j, 2, p)`` d pixel / d theta for camera j's rows
+    (per-camera terms: theta is camera j's own; cell terms: shared); ``trk(ctx) -> (N, 3, p)`` d X*_tracker
+    [um] / d theta; ``rot(ctx) -> (N, 3, p)`` d constellation rotation [urad] / d theta. Magnitude: rms over
+    cameras of |theta_j| (per camera) or rms over the parameters (cell terms), times ``display``."""
     id: str
     name: str
     mechanism: str
-    per_camera: tuple          # parameter names per camera
+    params: tuple              # parameter names (per camera, or of the cell)
     units: tuple
     display_unit: str
+    display: float             # theta [SI] x display = magnitude unit
     reveal_by: str
-    basis: object              # (ctx, j) -> (n_j, 2, p) d pixel / d theta for camera j
-    plausible_max: float = np.inf
+    cam: object = None
+    trk: object = None
+    rot: object = None
+    per_camera: bool = True
+    plausible_max: float = np.inf      # in the display unit
+    blind: str = ""                    # why no acquisition of this kind can show it (null limit)
 
 
 def _b_k1(c, j):
@@ -75,8 +91,9 @@ def _b_aspect(c, j):
 
 
 def _b_rot_drift(c, j):
-    # rotation of camera j growing linearly over the session (rad per session)
-    return c["t"][j][:, None, None] * c["jrot"][j]
+    # tilt of camera j (about its image x and y axes) growing linearly over the session (rad per session);
+    # a roll about the optical axis barely moves a disc near the image centre (see reveal_by)
+    return c["t"][j][:, None, None] * c["jrot"][j][:, :, :2]
 
 
 def _b_pos_drift(c, j):
@@ -108,47 +125,262 @@ def _distort_jacobian(D, n, h=1e-7):
     return out
 
 
+def _cam_from_U(dU_fn):
+    """Camera basis of a cell term from its displacement of the SMR* in the probe-body frame:
+    dU_fn(ctx) -> (N, 3, p) [m per unit theta]; d pixel = (d pixel / d U) dU."""
+    def fn(c, j):
+        return np.einsum("mab,mbp->map", c["ju"][j], dU_fn(c)[c["ok"][j]])
+    return fn
+
+
+def _traceless(b):
+    return b - b.mean(axis=2, keepdims=True)
+
+
+def _dU_scale(c):
+    # SMR* relative to X* in the body frame: U = -A diag(1 + s) dq; the common part of s (a uniform scale)
+    # only moves the cameras' distance (absorbed) and is the tracker_length_scale term's: traceless here
+    return _traceless(-c["A"][None, :, :] * c["dq"][:, None, :])
+
+
+def _dX_scale(c):
+    return 1e6 * _traceless(np.einsum("ab,nb->nab", c["R_ts"] @ c["A"], c["dq"]))
+
+
+_STRAIGHT = [(a, k) for k in range(3) for a in range(3) if a != k]      # bow of axis k along a
+
+
+def _dU_straight(c):
+    out = np.zeros((len(c["dq"]), 3, 6))
+    for m, (a, k) in enumerate(_STRAIGHT):
+        out[:, a, m] = -c["dq2"][:, k]
+    return out
+
+
+def _dX_straight(c):
+    return 1e6 * np.einsum("ab,nbp->nap", c["R_ts"], -_dU_straight(c))
+
+
+def _dW_angular(c):
+    # rotation of the carriage w = G q (tracker frame R_ts G q) for G[a, k] (rad per m of axis k about a)
+    out = np.zeros((len(c["dq"]), 3, 9))
+    for a in range(3):
+        for k in range(3):
+            out[:, :, 3 * a + k] = 1e6 * np.outer(c["dq"][:, k], c["R_ts"][:, a])
+    return out
+
+
+def _dX_tracker_scale(c):
+    # (1 + s) about the tracker origin: s X; its constant part s X(reference) only moves X*, absorbed
+    return 1e6 * (c["dq"] @ (c["R_ts"] @ c["A"]).T)[:, :, None]
+
+
+def _dX_encoder(c):
+    # azimuth / elevation angle-scale errors: displacement along each angle's tangent at the cell,
+    # proportional to the angle travelled since the reference station
+    X = c["X_T"].mean(0)
+    t_az = np.cross([0.0, 0.0, 1.0], X)
+    t_az /= max(np.linalg.norm(t_az), 1e-12)
+    t_el = np.cross(X / np.linalg.norm(X), t_az)
+    dX = c["dq"] @ (c["R_ts"] @ c["A"]).T
+    return 1e6 * np.stack([np.outer(dX @ t, t) for t in (t_az, t_el)], 2)
+
+
+def _dX_centring(c):
+    return 1e6 * np.broadcast_to(np.eye(3), (len(c["dq"]), 3, 3)).copy()
+
+
+def _dX_lag(c):
+    # settled stations: the stage is at rest when frames and readings are taken, so a clock offset
+    # between tracker and cameras moves nothing (velocity 0)
+    return np.zeros((len(c["dq"]), 3, 1))
+
+
+_CAMERA = "camera"
+_CELL = "cell (shared by the cameras)"
 CATALOGUE = (
+    # ---- optics (per camera)
     PicmsTerm("lens_radial_k1", "lens radial distortion (k1) missing from CameraInfo",
               "the lens bends rays radially by k1 r^2 of the normalised radius; CameraInfo D says 0",
-              ("k1",), ("1",), "1 (rms over cameras)",
+              ("k1",), ("1",), "1 (rms over cameras)", 1.0,
               "a disc pattern spanning the field (wider stage travel), or a lab distortion calibration",
-              _b_k1, 5.0),
+              cam=_b_k1, plausible_max=5.0),
     PicmsTerm("lens_radial_k2", "lens radial distortion (k2, 4th order)",
               "fourth-order radial term k2 r^4 of the lens distortion",
-              ("k2",), ("1",), "1 (rms over cameras)", "features near the edge of the field", _b_k2, 500.0),
+              ("k2",), ("1",), "1 (rms over cameras)", 1.0, "features near the edge of the field",
+              cam=_b_k2, plausible_max=500.0),
     PicmsTerm("lens_tangential", "lens decentring (tangential) distortion",
               "lens elements decentred: p1, p2 plumb_bob terms", ("p1", "p2"), ("1", "1"),
-              "1 (rms over cameras)", "features over the whole field", _b_tangential, 0.05),
+              "1 (rms over cameras)", 1.0, "features over the whole field", cam=_b_tangential, plausible_max=0.05),
     PicmsTerm("principal_point_error", "principal-point error in CameraInfo",
               "cx, cy of the camera matrix are off: every image point shifts by the same pixels",
-              ("dcx", "dcy"), ("px", "px"), "px (rms)",
+              ("dcx", "dcy"), ("px", "px"), "px (rms)", 1.0,
               "a camera intrinsic calibration; in this cell it is absorbed by the camera rotation",
-              _b_pp, 200.0),
+              cam=_b_pp, plausible_max=200.0),
     PicmsTerm("focal_length_error", "focal-length (image scale) error",
               "the camera's focal length differs from CameraInfo: image coordinates scale about the centre",
-              ("df_rel",), ("1",), "1 (rms over cameras)",
-              "a change of working distance or a scale bar in the field", _b_focal, 0.1),
+              ("df_rel",), ("1",), "1 (rms over cameras)", 1.0,
+              "a change of working distance or a scale bar in the field", cam=_b_focal, plausible_max=0.1),
     PicmsTerm("pixel_aspect_error", "pixel aspect-ratio error",
               "fx and fy differ from CameraInfo by different amounts", ("dfx_rel",), ("1",),
-              "1 (rms over cameras)", "features spread horizontally across the field", _b_aspect, 0.05),
+              "1 (rms over cameras)", 1.0, "features spread horizontally across the field",
+              cam=_b_aspect, plausible_max=0.05),
     PicmsTerm("sensor_skew", "sensor axis skew", "sensor columns not perpendicular to rows",
-              ("skew",), ("1",), "1 (rms over cameras)", "features spread vertically across the field",
-              _b_skew, 0.05),
-    PicmsTerm("camera_rotation_drift", "camera pose thermal drift (rotation)",
-              "the camera mount rotates steadily as it warms during the session",
-              ("wx", "wy", "wz"), ("rad", "rad", "rad"), "urad over the session (rms over cameras)",
-              "a longer session, or repeat stations at its start and end", _b_rot_drift, 1e-2),
-    PicmsTerm("camera_position_drift", "camera pose thermal drift (position)",
+              ("skew",), ("1",), "1 (rms over cameras)", 1.0, "features spread vertically across the field",
+              cam=_b_skew, plausible_max=0.05),
+    PicmsTerm("camera_rotation_drift", "camera mount tilt drift (thermal)",
+              "the camera mount tilts steadily (about the image axes) as it warms during the session",
+              ("wx", "wy"), ("rad", "rad"), "urad over the session (rms over cameras)", 1e6,
+              "a longer session, or repeat stations at its start and end; a roll drift needs features "
+              "spread across the field", cam=_b_rot_drift, plausible_max=1e4),
+    PicmsTerm("camera_position_drift", "camera mount position drift (thermal)",
               "the camera centre moves steadily as the mount expands during the session",
-              ("vx", "vy", "vz"), ("m", "m", "m"), "um over the session (rms over cameras)",
-              "a longer session, or repeat stations at its start and end", _b_pos_drift, 1e-3),
+              ("vx", "vy", "vz"), ("m", "m", "m"), "um over the session (rms over cameras)", 1e6,
+              "a longer session with repeat stations; sideways drift is told from tilt drift only by "
+              "targets at different depths", cam=_b_pos_drift, plausible_max=1e3),
+    # ---- stage linear axes (cell)
+    PicmsTerm("stage_axis_scale", "stage axis scale (lead) error, differential",
+              "the axes travel (1 + s_k) times what their encoders read (ball-screw lead, scale calibration); "
+              "the cameras see the differences between axes (a common scale only moves their distance), and "
+              "a pitch / yaw / roll of the carriage through the Abbe offset of X* looks the same to them",
+              ("sx", "sy", "sz"), ("1", "1", "1"), "ppm (rms over axes, common part removed)", 1e6,
+              "a laser interferometer along each axis; telling the angular (Abbe) part apart needs an "
+              "autocollimator or the constellation rotation over a longer travel",
+              cam=_cam_from_U(_dU_scale), trk=_dX_scale, per_camera=False,
+              # lead errors of precision ball-screw grades C0-C7 stay below ~170 ppm; 300 ppm between axes is
+              # beyond a precision stage (on a short travel a camera aspect error can look like one)
+              plausible_max=300.0),
+    PicmsTerm("stage_straightness", "stage straightness (bow of each axis)",
+              "each axis bows perpendicular to its travel, quadratically in the reading: c_ak q_k^2",
+              tuple(f"bow_{'xyz'[k]}_along_{'xyz'[a]}" for a, k in _STRAIGHT), ("1/m",) * 6,
+              "um at 25 mm from the centre of travel (rms over the 6)", 0.025 ** 2 * 1e6,
+              "a longer travel (the bow grows with its square) or a straightedge reversal",
+              cam=_cam_from_U(_dU_straight), trk=_dX_straight, per_camera=False, plausible_max=50.0),
+    PicmsTerm("stage_angular", "stage angular error motions (pitch, yaw, roll)",
+              "the carriage rotates by G q as the axes travel; the tracker sees the constellation turn (the "
+              "cameras see it only through the unknown Abbe offset, as stage_axis_scale)",
+              tuple(f"about_{'xyz'[a]}_per_{'xyz'[k]}" for a in range(3) for k in range(3)), ("rad/m",) * 9,
+              "urad per 25 mm of travel (rms over the 9)", 0.025 * 1e6,
+              "a longer travel with the tracker's constellation, or an autocollimator / electronic level",
+              rot=_dW_angular, per_camera=False, plausible_max=1e4),
+    # ---- tracker (cell)
+    PicmsTerm("tracker_length_scale", "tracker length scale error (or a lead error common to the three axes)",
+              "the tracker's lengths are (1 + s) times true (air refractive index, ADM / interferometer scale); "
+              "against the encoders it is the same as a common scale error of the stage axes",
+              ("s",), ("1",), "ppm", 1e6,
+              "a calibrated reference length (scale bar) or a long-travel comparison with an interferometer",
+              trk=_dX_tracker_scale, per_camera=False, plausible_max=1000.0),
+    PicmsTerm("tracker_angular_encoder", "tracker angular encoder error (azimuth / elevation scale)",
+              "the tracker's angle encoders read (1 + e) times the angle turned: a stretch of its readings "
+              "along the azimuth and elevation tangents at the cell",
+              ("e_az", "e_el"), ("1", "1"), "ppm of the angle (rms)", 1e6,
+              "readings over a wide angular range, or a two-face (front / back sight) test of the tracker",
+              trk=_dX_encoder, per_camera=False, plausible_max=1e4),
+    PicmsTerm("smr_centring", "SMR centring error in its nest",
+              "the SMR*'s optical centre is off its sphere centre (or the nest seat): every tracker reading of "
+              "X* carries the same offset", ("ex", "ey", "ez"), ("m", "m", "m"), "um (rms over axes)", 1e6,
+              "turning the SMR* in its nest between readings (they describe a circle of the centring radius), "
+              "or swapping it for another SMR", trk=_dX_centring, per_camera=False, plausible_max=100.0,
+              blind="a constant offset of the SMR* reading is absorbed by X*'s position in the tracker frame "
+                    "(it biases the calibrated X* by exactly the centring error)"),
+    PicmsTerm("tracker_timing_lag", "timing lag between tracker and camera clocks",
+              "tracker stamps offset from the cameras' by a constant lag; a reading then belongs to another "
+              "stage position", ("lag",), ("s",), "ms", 1e3,
+              "frames and readings taken while the stage moves at a known speed (the lag is the displacement "
+              "over the speed)", trk=_dX_lag, per_camera=False, plausible_max=1e3,
+              blind="only settled stations are used: the stage is at rest when frames and readings are taken, "
+                    "so a clock offset moves nothing"),
 )
 MIN_STATIONS = 15
 CATALOGUE_BY_ID = {t.id: t for t in CATALOGUE}
-DISPLAY = {"lens_radial_k1": 1.0, "lens_radial_k2": 1.0, "lens_tangential": 1.0, "principal_point_error": 1.0,
-           "focal_length_error": 1.0, "pixel_aspect_error": 1.0, "sensor_skew": 1.0,
-           "camera_rotation_drift": 1e6, "camera_position_drift": 1e6}
+#: residual components: image u, v (px); tracker x, y, z (um); constellation rotation x, y, z (urad)
+COMPONENTS = ("u", "v", "tracker_x", "tracker_y", "tracker_z", "rotation_x", "rotation_y", "rotation_z")
+
+
+def _camera_block(result, camera_info, U, obs, cov, cams, dA, tnorm, n_pose, p_nom):
+    """Rows, Jacobian and context of the disc-centre residuals (px)."""
+    rows = {"r": [], "J": [], "sig": [], "comp": [], "st": [], "cam": []}
+    ctx = {k: [] for k in ("jdist", "n", "f", "t", "jrot", "jpos", "ju", "ok", "idx")}
+    row = 0
+    for j, c in enumerate(cams):
+        cr = result.cameras[c]
+        R, C = np.asarray(cr.R_stage_camera), np.asarray(cr.p_stage_centre)
+        f = float(camera_info[c].f_px)
+        ok = np.where(np.isfinite(obs[j, :, 0]))[0]
+        pc = (U[ok] - C) @ R
+        n = pc[:, :2] / pc[:, 2:3]
+        jr, jp, ju = (np.zeros((len(ok), 2, 3)) for _ in range(3))
+        for m, i in enumerate(ok):
+            x, y, z = pc[m]
+            P = np.array([[1 / z, 0, -x / z ** 2], [0, 1 / z, -y / z ** 2]])
+            jr[m] = f * P @ _skew(pc[m])
+            jp[m] = -f * P @ R.T
+            ju[m] = f * P @ R.T
+            Jrow = np.zeros((2, p_nom))
+            Jrow[:, 6 * j:6 * j + 3] = jr[m]
+            Jrow[:, 6 * j + 3:6 * j + 6] = jp[m]
+            for k in range(3):
+                Jrow[:, n_pose + k] = ju[m] @ dA[k][i]
+            r = f * (obs[j, i] - n[m])
+            sd = f * np.sqrt(np.diag(cov[j, i]))
+            for a in range(2):
+                rows["r"].append(r[a])
+                rows["J"].append(Jrow[a])
+                rows["sig"].append(sd[a])
+                rows["comp"].append(a)
+                rows["st"].append(i)
+                rows["cam"].append(j)
+        ctx["n"].append(n)
+        ctx["jdist"].append(_distort_jacobian(np.asarray(camera_info[c].D, float), n))
+        ctx["f"].append(f)
+        ctx["t"].append(tnorm[ok])
+        ctx["jrot"].append(jr)
+        ctx["jpos"].append(jp)
+        ctx["ju"].append(ju)
+        ctx["ok"].append(ok)
+        ctx["idx"].append(np.arange(row, row + 2 * len(ok)).reshape(-1, 2))
+        row += 2 * len(ok)
+    return rows, ctx
+
+
+def _tracker_blocks(result, d, sq, dq, p_nom, c_trk):
+    """Rows and Jacobian of the tracker link (um) and the constellation rotation (urad)."""
+    rows = {"r": [], "J": [], "sig": [], "comp": [], "st": [], "cam": []}
+    X, q = np.asarray(d["X_T"]), np.asarray(d["q"])
+    sx = np.sqrt(np.maximum(np.diag(np.asarray(d["cov_X"])), 0)).reshape(-1, 3) * 1e6
+    W = np.asarray(d["W_T"])
+    sw = np.sqrt(np.maximum(np.diag(np.asarray(d["cov_W"])), 0)).reshape(-1, 3) * 1e6
+    R, p0 = np.asarray(result.R_tracker_stage), np.asarray(result.p_tracker_stage)
+    A = travel_matrix(sq)
+    h = 1e-7
+    dAk = [(travel_matrix(sq + h * e) - travel_matrix(sq - h * e)) / (2 * h) for e in np.eye(3)]
+    for i in range(len(q)):
+        model = p0 + R @ A @ q[i]
+        Jr = np.zeros((3, p_nom))
+        for k in range(3):
+            Jr[:, c_trk - 3 + k] = 1e6 * R @ dAk[k] @ q[i]        # squareness (shared with the cameras)
+        Jr[:, c_trk:c_trk + 3] = 1e6 * np.eye(3)                  # X* at encoder 0, tracker frame
+        Jr[:, c_trk + 3:c_trk + 6] = -1e6 * R @ _skew(A @ q[i])    # stage frame orientation
+        for a in range(3):
+            if sx[i, a] > 0:
+                rows["r"].append(1e6 * (X[i, a] - model[a]))
+                rows["J"].append(Jr[a])
+                rows["sig"].append(sx[i, a])
+                rows["comp"].append(2 + a)
+                rows["st"].append(i)
+                rows["cam"].append(-1)
+    for i in range(1, len(q)):                                     # the reference's own rotation is exact (0)
+        Jw = np.zeros((3, p_nom))
+        Jw[:, c_trk + 6:c_trk + 9] = 1e6 * np.eye(3)              # the reference station's rotation error
+        for a in range(3):
+            if sw[i, a] > 0:
+                rows["r"].append(1e6 * W[i, a])
+                rows["J"].append(Jw[a])
+                rows["sig"].append(sw[i, a])
+                rows["comp"].append(5 + a)
+                rows["st"].append(i)
+                rows["cam"].append(-1)
+    return rows
 
 
 def build(result: CalibrationResult, camera_info: dict, n_folds: int = 5):
@@ -162,70 +394,46 @@ def build(result: CalibrationResult, camera_info: dict, n_folds: int = 5):
     A = travel_matrix(sq)
     dq = -U @ np.linalg.inv(A).T                  # U = -(dq A^T)
     N = U.shape[0]
+    if N < MIN_STATIONS:
+        raise ValueError(f"{N} settled stations: too few for a discrepancy verdict (the noise floor and the "
+                         f"held-out folds need >= {MIN_STATIONS}; 6 pose parameters per camera leave too few "
+                         "degrees of freedom); record the grid acquisition (grid_pattern(), 33 stations)")
     dA = []
     for k in range(3):
         e = np.zeros(3)
         e[k] = 1e-7
         dA.append(-(dq @ ((travel_matrix(sq + e) - travel_matrix(sq - e)) / 2e-7).T))   # (N, 3)
-    if N < MIN_STATIONS:
-        raise ValueError(f"{N} settled stations: too few for a discrepancy verdict (the noise floor and the "
-                         f"held-out folds need >= {MIN_STATIONS}; 6 pose parameters per camera leave too few "
-                         "degrees of freedom); record the grid acquisition (grid_pattern(), 33 stations)")
+    if "t_ns" in d and N > 1 and np.ptp(d["t_ns"]) > 0:   # linear in time (drift), -0.5 .. 0.5 over the session
+        t = np.asarray(d["t_ns"], float)
+        tnorm = (t - t[0]) / (t[-1] - t[0]) - 0.5
+    else:
+        tnorm = np.linspace(-0.5, 0.5, N) if N > 1 else np.zeros(1)
     n_pose = 6 * len(cams)
-    p0 = n_pose + 3
-    rows_r, rows_j, sig, comp, grp, cam_of, st_of = [], [], [], [], [], [], []
-    ctx = {"jdist": [], "n": [], "f": [], "t": [], "jrot": [], "jpos": [], "idx": []}
-    tnorm = np.linspace(-0.5, 0.5, N) if N > 1 else np.zeros(1)
-    row = 0
-    for j, c in enumerate(cams):
-        cr = result.cameras[c]
-        R, C = np.asarray(cr.R_stage_camera), np.asarray(cr.p_stage_centre)
-        f = float(camera_info[c].f_px)
-        ok = np.where(np.isfinite(obs[j, :, 0]))[0]
-        pc = (U[ok] - C) @ R
-        n = pc[:, :2] / pc[:, 2:3]
-        jr, jp = np.zeros((len(ok), 2, 3)), np.zeros((len(ok), 2, 3))
-        for m, i in enumerate(ok):
-            x, y, z = pc[m]
-            P = np.array([[1 / z, 0, -x / z ** 2], [0, 1 / z, -y / z ** 2]])
-            jr[m] = f * P @ _skew(pc[m])
-            jp[m] = -f * P @ R.T
-            Jrow = np.zeros((2, p0))
-            Jrow[:, 6 * j:6 * j + 3] = jr[m]
-            Jrow[:, 6 * j + 3:6 * j + 6] = jp[m]
-            for k in range(3):
-                Jrow[:, n_pose + k] = f * P @ R.T @ dA[k][i]
-            r = f * (obs[j, i] - n[m])
-            s = f * np.sqrt(np.diag(cov[j, i]))
-            for a in range(2):
-                rows_r.append(r[a])
-                rows_j.append(Jrow[a])
-                sig.append(s[a])
-                comp.append(a)
-                grp.append(i)
-                cam_of.append(j)
-                st_of.append(i)
-        ctx["n"].append(n)
-        ctx["jdist"].append(_distort_jacobian(np.asarray(camera_info[c].D, float), n))
-        ctx["f"].append(f)
-        ctx["t"].append(tnorm[ok])
-        ctx["jrot"].append(jr)
-        ctx["jpos"].append(jp)
-        ctx["idx"].append(np.arange(row, row + 2 * len(ok)).reshape(-1, 2))
-        row += 2 * len(ok)
-    residual = np.array(rows_r)
+    has_trk = "X_T" in d
+    c_trk = n_pose + 3
+    p_nom = c_trk + (9 if has_trk else 0)
+    rows, ctx = _camera_block(result, camera_info, U, obs, cov, cams, dA, tnorm, n_pose, p_nom)
+    n_cam = len(rows["r"])
+    q = np.asarray(d.get("q", dq), float)
+    ctx.update(A=A, dq=dq, dq2=q * q - q[0] * q[0], R_ts=np.asarray(result.R_tracker_stage),
+               X_T=np.asarray(d.get("X_T", np.zeros((N, 3)))))
+    if has_trk:
+        tr = _tracker_blocks(result, d, sq, q - q[0], p_nom, c_trk)
+        for k in rows:
+            rows[k] += tr[k]
+    residual = np.array(rows["r"])
     nn = residual.size
-    if nn < 2 * p0:
-        raise ValueError(f"{nn} residuals for {p0} nominal parameters: too few stations to analyse")
-    cam_of, st_of, comp = np.array(cam_of), np.array(st_of), np.array(comp)
-    # neighbours: same camera and axis, consecutive stations
+    if n_cam < 2 * p_nom:
+        raise ValueError(f"{n_cam} disc-centre residuals for {p_nom} nominal parameters: too few stations to analyse")
+    comp, st_of, cam_of = np.array(rows["comp"]), np.array(rows["st"]), np.array(rows["cam"])
+    # neighbours: same camera (or block) and component, consecutive stations
     pairs = []
-    for j in range(len(cams)):
-        for a in range(2):
+    for j in sorted(set(cam_of.tolist())):
+        for a in sorted(set(comp[cam_of == j].tolist())):
             ii = np.where((cam_of == j) & (comp == a))[0]
             pairs += list(zip(ii[:-1], ii[1:]))
     fold = (st_of * n_folds) // max(N, 1)
-    # locate axes: time (station order) per camera, sensor field per camera
+    # locate axes (disc centres): time (station order) per camera, sensor field per camera
     emp_t = np.zeros((nn, 3 * len(cams) * 2))
     emp_f = np.zeros((nn, 5 * len(cams) * 2))
     for j in range(len(cams)):
@@ -239,47 +447,73 @@ def build(result: CalibrationResult, camera_info: dict, n_folds: int = 5):
             for k, v in enumerate((nx[:, 0] ** 2, nx[:, 0] * nx[:, 1], nx[:, 1] ** 2,
                                    nx[:, 0] * (nx ** 2).sum(1), nx[:, 1] * (nx ** 2).sum(1))):
                 emp_f[rr, (j * 2 + a) * 5 + k] = v
-    ds = Dataset(residual=residual, jac=np.array(rows_j),
-                 nominal_names=tuple(f"{c}.{p}" for c in cams for p in ("rx", "ry", "rz", "cx", "cy", "cz"))
-                 + ("squareness_xy", "squareness_xz", "squareness_yz"),
-                 sigma=np.array(sig), component=comp, group=np.array(grp), neighbours=np.array(pairs, int),
-                 fold=fold, empirical={"station order (time)": emp_t, "sensor field": emp_f}, unit="px")
+    names = tuple(f"{c}.{p}" for c in cams for p in ("rx", "ry", "rz", "cx", "cy", "cz")) + \
+        ("squareness_xy", "squareness_xz", "squareness_yz")
+    if has_trk:
+        names += ("x_star_tracker_x", "x_star_tracker_y", "x_star_tracker_z", "stage_frame_rx", "stage_frame_ry",
+                  "stage_frame_rz", "reference_rotation_x", "reference_rotation_y", "reference_rotation_z")
+    rms_rows = np.zeros(nn, bool)
+    rms_rows[:n_cam] = True
+    ds = Dataset(residual=residual, jac=np.array(rows["J"]), nominal_names=names, sigma=np.array(rows["sig"]),
+                 component=comp, group=st_of, neighbours=np.array(pairs, int), fold=fold,
+                 empirical={"station order (time)": emp_t, "sensor field": emp_f}, unit="px", rms_rows=rms_rows)
+    tk_rows = np.where(comp >= 2)[0]
+    tk_idx = {(int(st_of[r]), int(comp[r])): r for r in tk_rows}
     cands = []
     for t in CATALOGUE:
-        p = len(t.per_camera)
-        B = np.zeros((nn, p * len(cams)))
-        for j in range(len(cams)):
-            b = t.basis(ctx, j)                      # (m, 2, p)
-            for a in range(2):
-                B[ctx["idx"][j][:, a], j * p:(j + 1) * p] = b[:, a, :]
-        scale = np.full(p * len(cams), DISPLAY[t.id])
-        nc = len(cams)
-        mag = (lambda th, s=DISPLAY[t.id], nc=nc: float(np.sqrt(np.sum((np.asarray(th) * s) ** 2) / nc)))
+        p = len(t.params)
+        width = p * len(cams) if t.per_camera else p
+        B = np.zeros((nn, width))
+        if t.cam is not None:
+            for j in range(len(cams)):
+                b = t.cam(ctx, j)                      # (m, 2, p)
+                cols = slice(j * p, (j + 1) * p) if t.per_camera else slice(0, p)
+                for a in range(2):
+                    B[ctx["idx"][j][:, a], cols] += b[:, a, :]
+        for fn, c0 in ((t.trk, 2), (t.rot, 5)):
+            if fn is not None and has_trk:
+                b = fn(ctx)                            # (N, 3, p)
+                for i in range(N):
+                    for a in range(3):
+                        r = tk_idx.get((i, c0 + a))
+                        if r is not None:
+                            B[r] = b[i, a]
+        groups = len(cams) if t.per_camera else p
+        scale = np.full(width, t.display)
+        mag = (lambda th, s=t.display, g=groups: float(np.sqrt(np.sum((np.asarray(th) * s) ** 2) / g)))
         cands.append(Candidate(id=t.id, name=t.name, mechanism=t.mechanism,
-                               param_names=tuple(f"{c}.{q}" for c in cams for q in t.per_camera),
-                               param_units=tuple(u for _ in cams for u in t.units), basis=B,
-                               magnitude_unit=t.display_unit, display_scale=scale, reveal_by=t.reveal_by,
-                               magnitude=mag, plausible_max=t.plausible_max * DISPLAY[t.id]))
-    return ds, cands, {"cameras": cams, "n_stations": N, "cam_of": cam_of, "station_of": st_of, "comp": comp}
+                               param_names=tuple(f"{c}.{q}" for c in cams for q in t.params) if t.per_camera
+                               else t.params,
+                               param_units=tuple(u for _ in cams for u in t.units) if t.per_camera else t.units,
+                               basis=B, magnitude_unit=t.display_unit, display_scale=scale, reveal_by=t.reveal_by,
+                               magnitude=mag, plausible_max=t.plausible_max))
+    return ds, cands, {"cameras": cams, "n_stations": N, "cam_of": cam_of[:n_cam], "station_of": st_of[:n_cam],
+                       "comp": comp[:n_cam], "n_cam_rows": n_cam, "has_tracker": has_trk}
+
+
+def _groups(t: PicmsTerm, n_cams: int) -> int:
+    return n_cams if t.per_camera else len(t.params)
 
 
 def run(result: CalibrationResult, camera_info: dict, *, progress=None, max_terms: int = 3) -> dict:
     """The Pixel Probe analysis; the discrepancy.json dict (same keys as CT) plus ``_arrays``."""
     say = progress or (lambda _m: None)
     ds, cands, ext = build(result, camera_info)
-    say(f"{ds.residual.size} disc-centre residuals ({len(ext['cameras'])} cameras, {ext['n_stations']} stations); "
-        f"{len(cands)} catalogue terms")
+    nc = len(ext["cameras"])
+    say(f"{ext['n_cam_rows']} disc-centre residuals ({nc} cameras, {ext['n_stations']} stations), "
+        f"{ds.residual.size - ext['n_cam_rows']} tracker-link residuals; {len(cands)} catalogue terms")
     res = analyse(ds, cands, max_terms=max_terms, progress=say)
     by_id = {c.id: c for c in cands}
     findings = []
     for f in res["findings"]:
         c = by_id[f["term"]]
+        g_n = _groups(CATALOGUE_BY_ID[c.id], nc)
         th, ct = np.asarray(f["theta"]), np.asarray(f["theta_cov"])
         u = np.sqrt(np.maximum(np.diag(ct), 0))
         mag = c.mag(th)
         g = np.zeros_like(th)
         if mag > 0:
-            g = (th * c.display_scale ** 2) / (len(ext["cameras"]) * mag)
+            g = (th * c.display_scale ** 2) / (g_n * mag)
         mag_u = float(np.sqrt(max(g @ ct @ g, 0.0)))
         sep = {c.reveal_by} | {by_id[d].reveal_by for d in f["degenerate_with"]}
         findings.append({
@@ -294,61 +528,53 @@ def run(result: CalibrationResult, camera_info: dict, *, progress=None, max_term
         })
     limits = {}
     for c in cands:
-        lim = res["limits"][c.id]
-        if lim["absorbed_fraction"] > 0.999 or not np.isfinite(lim["limit"]):
+        lim, t = res["limits"][c.id], CATALOGUE_BY_ID[c.id]
+        if not np.any(c.basis):
             limits[c.id] = {"limit": None, "unit": c.magnitude_unit, "reveal_by": c.reveal_by,
-                            "cannot_see": "absorbed by the calibrated camera poses in this acquisition"}
+                            "cannot_see": t.blind or "no residual of this recording responds to it"}
+        elif lim["absorbed_fraction"] > 1 - 1e-7 or not np.isfinite(lim["limit"]):
+            limits[c.id] = {"limit": None, "unit": c.magnitude_unit, "reveal_by": c.reveal_by,
+                            "cannot_see": t.blind or "absorbed by the calibrated parameters in this acquisition"}
         else:
             # the engine's limit is on the parameter vector's smallest-eigen direction (display units);
-            # our magnitude is an rms over cameras
-            limits[c.id] = {"limit": lim["limit"] / np.sqrt(len(ext["cameras"])), "unit": c.magnitude_unit,
+            # our magnitude is an rms over cameras or parameters
+            limits[c.id] = {"limit": lim["limit"] / np.sqrt(_groups(t, nc)), "unit": c.magnitude_unit,
                             "reveal_by": c.reveal_by, "absorbed_fraction": lim["absorbed_fraction"]}
-    unexplained = [{"axis": e["axis"], "significance_sigma": e["significance_sigma"], "delta_bic": e["delta_bic"],
-                    "amplitude_rms_px": e["amplitude_rms"], "amplitude_max_px": e["amplitude_max"],
-                    "absorbed_by": f"empirical:{e['axis']}"} for e in res["unexplained"]]
+    unexplained = unexplained_entries(res["unexplained"])
     adequate = not findings and not unexplained
     fl = res["floor"]
-    floor_d = fl.to_dict("px")
-    floor_d["stated_sigma_median_px"] = fl.sigma_median
-    sd = fl.factor * fl.sigma_median
+    floor_d = fl.to_dict("px (u, v); um (tracker_*); urad (rotation_*)", COMPONENTS[:len(fl.factor)])
+    floor_d["stated_sigma_median_px"] = float(np.median(ds.sigma[:ext["n_cam_rows"]]))
+    for a, name in enumerate(COMPONENTS[:len(fl.factor)]):     # the engine states them at the overall median
+        floor_d["independent_sd"][name] = float(fl.factor[a] * np.median(ds.sigma[ds.component == a]))
+    sd = fl.factor[:2] * floor_d["stated_sigma_median_px"]
 
-    def fmt(v, unit):
-        return "not observable" if v is None or not np.isfinite(v) else f"{v:.3g} {unit.split(' ')[0]}"
-    if adequate:
-        verdict = (f"No significant discrepancy: the nominal model explains the {ds.residual.size // 2} disc centres "
-                   f"down to the noise floor ({sd[0]:.3g} / {sd[1]:.3g} px in u / v); e.g. no lens k1 above "
-                   f"{fmt(limits['lens_radial_k1']['limit'], '1')} and no camera rotation drift above "
-                   f"{fmt(limits['camera_rotation_drift']['limit'], 'urad')} urad over the session.")
-    elif findings:
-        f0 = findings[0]
-        alt = (f" (or, indistinguishable here, {', '.join(by_id[d].name for d in f0['degenerate_with'])})"
-               if f0["degenerate_with"] else "")
-        verdict = (f"The nominal model leaves out {f0['name']}{alt}: {f0['magnitude']:.3g} {f0['magnitude_unit']} "
-                   f"at {f0['significance_sigma']:.1f} sigma; with it the held-out residual falls from "
-                   f"{res['before']['held_out_rms']:.4g} to {res['after']['held_out_rms']:.4g} px "
-                   f"(noise floor {sd[0]:.3g} px).")
-        if len(findings) > 1:
-            verdict += " Also: " + "; ".join(f"{f['name']} ({f['magnitude']:.3g} {f['magnitude_unit']})"
-                                             for f in findings[1:]) + "."
-        if unexplained:
-            verdict += f" Structure along {unexplained[0]['axis']} remains unexplained."
-    else:
-        e = unexplained[0]
-        verdict = (f"Structure beyond the noise floor along {e['axis']} ({e['significance_sigma']:.1f} sigma, "
-                   f"{e['amplitude_rms_px']:.3g} px rms) that no catalogue term explains; absorbed only by an "
-                   f"empirical term, physics unknown.")
+    def fmt(key, unit):
+        v = limits[key]["limit"]
+        return "not observable" if v is None or not np.isfinite(v) else f"{v:.3g} {unit}"
+    verdict = verdict_sentence(
+        findings, unexplained, name_of={t.id: t.name for t in CATALOGUE}, n_obs=ext["n_cam_rows"] // 2,
+        obs_noun="disc centres", floor_sd=sd, floor_axes="u / v", held_out_before=res["before"]["held_out_rms"],
+        held_out_after=res["after"]["held_out_rms"],
+        clean_examples=(f"no lens k1 above {fmt('lens_radial_k1', '')}, no differential stage axis scale above "
+                        f"{fmt('stage_axis_scale', 'ppm')} and no camera tilt drift above "
+                        f"{fmt('camera_rotation_drift', 'urad')} over the session").replace(" ,", ","))
     xr = np.hstack([ds.jac] + [by_id[i].basis for i in res["chosen"]])
     r_after = ds.residual - xr @ res["beta"]
+    m = ext["n_cam_rows"]
     return {
         "verdict": verdict, "adequate": bool(adequate), "noise_floor": floor_d,
         "fit_before": res["before"], "fit_after": res["after"], "findings": findings, "unexplained": unexplained,
         "located": [dict(e) for e in res["located"]], "detection_limits": limits,
-        "catalogue": [{"id": t.id, "name": t.name, "mechanism": t.mechanism,
-                       "parameters": list(t.per_camera), "units": list(t.units), "per": "camera",
-                       "magnitude_unit": t.display_unit, "reveal_by": t.reveal_by} for t in CATALOGUE],
-        "n_observations": int(ds.residual.size // 2), "n_stations": ext["n_stations"],
-        "bic_threshold": BIC_THRESHOLD,
-        "_arrays": {"residual_before": ds.residual, "residual_after": r_after, "station": ext["station_of"],
+        "catalogue": [{"id": t.id, "name": t.name, "mechanism": t.mechanism, "parameters": list(t.params),
+                       "units": list(t.units), "per": _CAMERA if t.per_camera else _CELL,
+                       "magnitude_unit": t.display_unit, "reveal_by": t.reveal_by,
+                       "residual_blocks": [b for b, fn in (("camera", t.cam), ("tracker link", t.trk),
+                                                           ("constellation rotation", t.rot)) if fn is not None]}
+                      for t in CATALOGUE],
+        "n_observations": int(m // 2), "n_tracker_residuals": int(ds.residual.size - m),
+        "n_stations": ext["n_stations"], "bic_threshold": BIC_THRESHOLD,
+        "_arrays": {"residual_before": ds.residual[:m], "residual_after": r_after[:m], "station": ext["station_of"],
                     "camera": ext["cam_of"], "comp": ext["comp"]},
     }
 
