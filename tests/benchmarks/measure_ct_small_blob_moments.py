@@ -89,10 +89,12 @@ def main():
                     de = r[:, 2]
                     refused = (r[:, 0] > lim) & ((r[:, 0] > 1 + detect._PIXELATION_AXIS_COEF * de ** -1.5)
                                                  | (r[:, 1] > lim))
-                    row = dict(model=model, d=d, blur=blur, noise=noise, bin_p50=round(float(np.median(r[:, 0])), 3),
-                               bin_max=round(float(r[:, 0].max()), 3), frac_over=round(float(np.mean(r[:, 0] > lim)), 3),
+                    row = dict(model=model, d=d, blur=blur, noise=noise,
+                               bin_p50=round(float(np.median(r[:, 0])), 3), bin_max=round(float(r[:, 0].max()), 3),
+                               frac_over=round(float(np.mean(r[:, 0] > lim)), 3),
                                coef=round(float(np.max((r[:, 0] - 1) * de ** 1.5)), 2),
-                               depth_max=round(float(r[:, 1].max()), 3), frac_refused_now=round(float(refused.mean()), 3))
+                               depth_max=round(float(r[:, 1].max()), 3),
+                               frac_refused_now=round(float(refused.mean()), 3))
                     out["single"].append(row)
                     print(f"{model:8s} {d:4.0f} {blur:4.2f} {noise:5.2f} {row['bin_p50']:7.3f} {row['bin_max']:7.3f} "
                           f"{row['frac_over']:6.3f} {row['coef']:12.2f} {row['depth_max']:9.3f} "
