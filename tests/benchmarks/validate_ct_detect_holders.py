@@ -19,7 +19,8 @@ are listed with their errors and z-scores.
 
 Usage: .venv/bin/python tests/benchmarks/validate_ct_detect_holders.py [--frames N] [--seed S] [--no-corner]
        [--wide] [--tube-only] [--before]
-(--before: also the detector without the band-merged cores, method "before", on the same frames.)
+(--before: also the detector without the band-merged cores, method "before", on the same frames;
+ --before-setting grey_moment_screen: without the depth-weighted moments of small blobs instead.)
 Prints a table, then ONE JSON line.
 """
 
@@ -131,9 +132,11 @@ def main():
     ap.add_argument("--before", action="store_true",
                     help="also run the detector without the band-merged cores (band_core=False) on the same "
                          "frames: method 'before'")
+    ap.add_argument("--before-setting", default="band_core", choices=("band_core", "grey_moment_screen"),
+                    help="the setting switched off for method 'before' (default band_core)")
     args = ap.parse_args()
     st = detect.DetectionSettings(max_corner_misfit=None) if args.no_corner else None
-    st_before = replace(st or detect.DetectionSettings(), band_core=False)
+    st_before = replace(st or detect.DetectionSettings(), **{args.before_setting: False})
     fs = frames(args.frames, args.seed, wide=args.wide, kinds=("tube",) if args.tube_only else ("plate", "tube"))
     methods = ("ours", "textbook") + (("before",) if args.before else ())
     dr = (3e-3 * SDD / (0.364 + 0.045) / DET.pixel_pitch_m, 3e-3 * SDD / (0.364 - 0.045) / DET.pixel_pitch_m)

@@ -111,6 +111,15 @@ CLEAR_GAP_PX = 6.0
 GAP_BINS_PX = (0.0, 2.0, 4.0, 6.0)
 
 
+def _miss_reason(detail):
+    """The reason code of a refused observation's text; ``overlap`` split into ``overlap_merged`` (the
+    blob's shape: merged shadows) and ``overlap_proximity`` (threshold outlines closer than the margin)."""
+    code = detail.split(":")[0] or "accepted, wrong id"
+    if code == "overlap":
+        code += "_merged" if "merged" in detail else "_proximity" if "neighbouring" in detail else ""
+    return code
+
+
 def detection_check(frames, truth, legit, id_index, w_true):
     """Visible spheres found, false / misidentified detections, centre errors against the truth.
 
@@ -162,8 +171,7 @@ def detection_check(frames, truth, legit, id_index, w_true):
         out["found_close"] += int((found & close).sum())
         for k in np.flatnonzero(vis & ~found):
             out["missed"].append([j, int(k)])
-            near = [o[6].split(":")[0] or "accepted, wrong id" for o in obs
-                    if np.hypot(o[2] - cr[k, 0], o[3] - cr[k, 1]) < 0.5 * rad[k]]
+            near = [_miss_reason(o[6]) for o in obs if np.hypot(o[2] - cr[k, 0], o[3] - cr[k, 1]) < 0.5 * rad[k]]
             reason = near[0] if near else "no detection"
             out["missed_reasons"][reason] = out["missed_reasons"].get(reason, 0) + 1
     errs, sig, radial = np.array(errs).reshape(-1, 2), np.array(sig), np.array(radial)
