@@ -10,7 +10,7 @@ the first `--init` frames (as the replay does), and every frame is assigned; an 
 true sphere is wrong.
 
     .venv/bin/python tests/benchmarks/bench_identify_screw.py [--n 40] [--seed0 9000] [--cols 384] [--views 30]
-                     [--object-tilt-deg 0.5] [--init 6]
+                     [--object-tilt-deg 0.5] [--init 6] [--identify-from OLD_identify.py]
 
 helix49 is symmetric under turning it upside down (i -> N - 1 - i, same instrument geometry): ids labelled
 that way count as right. Prints one JSON line: outcomes (right, shifted = success with wrong ids, refused), wrong ids, CPU of the
@@ -34,7 +34,7 @@ sys.path[:0] = [str(HERE.parent / "ct_validation"), str(HERE.parent)]
 
 import ct_indep_gen as gen  # noqa: E402
 from ct_calib_nodes.core.geometry import DetectorSpec  # noqa: E402
-from ct_calib_nodes.core.identify import SphereIdentifier  # noqa: E402
+from ct_calib_nodes.core import identify  # noqa: E402
 
 
 def ideal_detections(case, rng, noise_px, p_close, p_drop):
@@ -60,7 +60,7 @@ def run_one(seed, args):
     rng = np.random.default_rng(seed + 10**6)
     inst = case["inst"]
     views = ideal_detections(case, rng, args.noise_px, args.p_close, args.p_drop)
-    idf = SphereIdentifier(case["ids"], case["c_file"], case["diam"], DetectorSpec(inst.cols, inst.rows, inst.pitch_m),
+    idf = args.identify.SphereIdentifier(case["ids"], case["c_file"], case["diam"], DetectorSpec(inst.cols, inst.rows, inst.pitch_m),
                            inst.sdd_reported_m)
     first = views[: args.init]
     t0 = time.process_time()
@@ -101,7 +101,15 @@ def main(argv=None):
     ap.add_argument("--p-close", type=float, default=0.6)
     ap.add_argument("--p-drop", type=float, default=0.04)
     ap.add_argument("--verbose", action="store_true")
+    ap.add_argument("--identify-from", help="another version of core/identify.py (before/after comparisons)")
     args = ap.parse_args(argv)
+    args.identify = identify
+    if args.identify_from:
+        import importlib.util  # noqa: PLC0415
+
+        spec = importlib.util.spec_from_file_location("ct_calib_nodes.core._identify_other", args.identify_from)
+        args.identify = sys.modules[spec.name] = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(args.identify)
     rows = []
     for s in range(args.seed0, args.seed0 + args.n):
         r = run_one(s, args)
@@ -116,7 +124,7 @@ def main(argv=None):
                "detections": int(sum(r["detections"] for r in rows)),
                "init_cpu_s_median": round(float(np.median(t)), 3), "init_cpu_s_max": round(float(t.max()), 3),
                "assign_cpu_ms_median": round(float(np.median(ta)), 3) if ta else None,
-               "loadavg": pathlib.Path("/proc/loadavg").read_text().split()[:3]}
+               "identify": args.identify_from or "this checkout", "loadavg": pathlib.Path("/proc/loadavg").read_text().split()[:3]}
     print(json.dumps(summary))
 
 

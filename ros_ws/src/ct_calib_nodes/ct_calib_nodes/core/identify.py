@@ -488,7 +488,12 @@ class SphereIdentifier:
                   and not self._same_positions(q[6], win[6], win[5])]
         if not refuse:
             margin = min(rivals) - win[0] if rivals else np.inf
-        screw_refused = bool(margin < self.settings.min_margin and self.screws and not refuse)
+        bad, _, w, res, n_match, gate_final, _ = results[0]
+        self._w = w
+        rms = float(np.sqrt(np.mean(res ** 2) * 2)) if res.size else np.nan
+        fits = bool(res.size and rms < gate_final and n_match >= 0.6 * n_det)
+        # a pose that fits but whose labelling a screw shift explains as well: say so (no diagnosis needed)
+        screw_refused = bool(fits and margin < self.settings.min_margin and self.screws and not refuse)
         if screw_refused:
             k = max(abs(s[0]) for s in self.screws)
             refuse = (f"the object is screw-symmetric (its centres shifted by up to {k} places in the file's "
@@ -496,11 +501,7 @@ class SphereIdentifier:
                       f"labellings shifted along it differ only at its end spheres, and these frames do not show "
                       f"the ends clearly enough to tell them apart; use frames where the end spheres are clear "
                       f"of their neighbours")
-        bad, _, w, res, n_match, gate_final, _ = results[0]
-        self._w = w
-        rms = float(np.sqrt(np.mean(res ** 2) * 2)) if res.size else np.nan
-        ok = bool(res.size and rms < gate_final and n_match >= 0.6 * n_det
-                  and margin >= self.settings.min_margin and not refuse)
+        ok = fits and margin >= self.settings.min_margin and not refuse
         msg = (f"{n_match} of {n_det} detections matched, rms {rms:.3f} px, {bad} unexplained"
                + (f" (next pose hypothesis: {bad + margin})" if np.isfinite(margin) else ""))
         if ok:
