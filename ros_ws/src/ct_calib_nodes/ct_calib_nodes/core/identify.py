@@ -16,19 +16,32 @@ centred) and searches its pose:
    that match the mean detected position, plus a height grid of +-4 mm in
    1 mm steps; each candidate is scored by a truncated nearest-neighbour cost
    over all initial frames (``sum min(d, gate)^2``), robust to missed and
-   spurious detections;
+   spurious detections. The object is assumed not to lean: the fine stage
+   takes up ~2 deg, beyond that the search fails (refuses) on most
+   instruments (ct_detect.md, "Independent renderer check");
 2. fine, from each of the 6 best distinct coarse poses: alternate gated,
    mutually unique nearest-neighbour matching and a least-squares fit of
    x_D, eta, x_P, y_P, z_P, rho_X, rho_Y, rho_Z (z_R, z_D, theta, phi stay
    nominal, y_D is absorbed by y_P) over the matched points, with a
    shrinking gate;
-3. decision: the refined pose that leaves the fewest detections unmatched and
-   the fewest visible, isolated predicted spheres undetected wins, and it
-   must beat the runner-up by ``min_margin``. This matters: a helix is
-   nearly invariant under a screw motion, and the relabelling i -> i + 1
-   fits every sphere but the two ends to a fraction of a pixel; only the
-   end spheres tell the hypotheses apart.
-4. orientation: the search covers the object upright (as in its calibration
+3. screw shifts: a helix is invariant under a screw motion (helix49 to
+   5e-10 m), and the relabelling i -> i + k fits every sphere but the k end
+   spheres to a fraction of a pixel. The calibrated centres are checked for
+   such shifts (k = +-1 .. +-3 in the file's order) when the identifier is
+   made; the best refined pose composed with each motion is refined and
+   scored too, so the coarse search need not have started every labelling;
+4. decision: the refined pose that leaves the fewest detections unmatched and
+   the fewest predicted spheres undetected that the detector would have found
+   (inside the detector, outline 6 px or more from every other shadow:
+   ``isolated_gap_px``) wins, and it must beat every other labelling by
+   ``min_margin``. Only the end spheres tell the screw shifts apart; when they
+   do not (ends hidden behind neighbours in these frames) a pose that fits is
+   refused with a message naming the screw symmetry (the replay then tries
+   the next frames). Counting every predicted sphere 2 px clear of its
+   neighbours as "missing" (before round 19) buried the end spheres under
+   ~100 spheres the detector refuses anyway, and 12 of 22 independent
+   recordings came out labelled 1-3 spheres along, reported as success.
+5. orientation: the search covers the object upright (as in its calibration
    frame) and turned upside down (rho_X = pi). When both explain the frames
    alike, the calibrated centres decide: an object whose centres map onto
    themselves under that turn (relabelled; the ideal helix49 does, i -> 50 - i)
