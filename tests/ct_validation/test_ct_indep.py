@@ -16,9 +16,10 @@ import ct_indep_check as ck
 pytestmark = pytest.mark.ros
 # Seeds 1, 3, 6 (24 projections, 384 px): 1 is an ordinary case, 3 has a sharp PSF (0.3-0.5 px) where the
 # detector's merged-shadow test refused isolated spheres before its depth-weighted moments (ct_detect.md,
-# "Small shadows"), 6 is one where the identity initialisation picks the helix labelled one sphere along
-# (the campaign: 12 of 22 instruments). The two failures left are xfail(strict) below: they turn into
-# failures the day they are fixed, so this file gets updated then.
+# "Small shadows"), 6 is one where the identity initialisation used to pick the helix labelled one sphere
+# along (round 19: 12 of 22 instruments; the screw-shifted labellings are now compared explicitly,
+# core/identify.py). The failure left is xfail(strict) below: it turns into a failure the day it is
+# fixed, so this file gets updated then.
 SEEDS = (1, 3, 6)
 GATE = 2.5     # the quality gate's factor between the residual rms and the stated sigma (ct_core.md)
 
@@ -69,9 +70,6 @@ def test_every_clear_sphere_found(cases):
         assert d["found_visible"] == d["visible"], (c["seed"], d["missed_reasons"], d["missed"])
 
 
-@pytest.mark.xfail(strict=True, reason="the identity initialisation labels the helix one sphere along (a screw "
-                                       "symmetry: only the end spheres differ) on 12 of 22 independent recordings; "
-                                       "see ct_detect.md")
 def test_sphere_identities(cases):
     for c in cases:
         assert c["labelling"] in ("file", "upside_down"), (c["seed"], c["labelling"], c["label_shift"])

@@ -131,8 +131,15 @@ def test_every_stage_position_is_judged_and_the_error_map_marked(start_node, ros
     with History(db) as h:
         multi = [r for r in h.list(cell="/cell", kind="ct_error_map", newest_first=True, with_details=True)
                  if r.result.get("mode") == "multi"]
-        assert multi[0].status == "poor_fit" and h.superseded(multi[0].result["supersedes"]["uid"]), \
-            [(r.id, r.status) for r in multi]
+        # the newest multi map is poor_fit: either the stored map was superseded by a poor_fit record (the
+        # verdict came after the solve), or a re-solve of the same stamp stored it already marked (the verdict
+        # came first); both keep the verdict and never leave a usable map of that campaign
+        newest = multi[0]
+        assert newest.status == "poor_fit", [(r.id, r.status, r.message[:60]) for r in multi]
+        if "supersedes" in newest.result:
+            assert h.superseded(newest.result["supersedes"]["uid"]), [(r.id, r.status) for r in multi]
+        else:
+            assert "found inadequate by the discrepancy engine" in newest.message, newest.message
         assert h.latest_valid("/cell", "ct_error_map") is None or \
             h.latest_valid("/cell", "ct_error_map").result.get("mode") == "single"
     # a restarted discrepancy node re-publishes the stored verdict; the error-motion node does not mark twice

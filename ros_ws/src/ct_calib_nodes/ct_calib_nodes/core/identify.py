@@ -16,19 +16,32 @@ centred) and searches its pose:
    that match the mean detected position, plus a height grid of +-4 mm in
    1 mm steps; each candidate is scored by a truncated nearest-neighbour cost
    over all initial frames (``sum min(d, gate)^2``), robust to missed and
-   spurious detections;
+   spurious detections. The object is assumed not to lean: the fine stage
+   takes up ~2 deg, beyond that the search fails (refuses) on most
+   instruments (ct_detect.md, "Independent renderer check");
 2. fine, from each of the 6 best distinct coarse poses: alternate gated,
    mutually unique nearest-neighbour matching and a least-squares fit of
    x_D, eta, x_P, y_P, z_P, rho_X, rho_Y, rho_Z (z_R, z_D, theta, phi stay
    nominal, y_D is absorbed by y_P) over the matched points, with a
    shrinking gate;
-3. decision: the refined pose that leaves the fewest detections unmatched and
-   the fewest visible, isolated predicted spheres undetected wins, and it
-   must beat the runner-up by ``min_margin``. This matters: a helix is
-   nearly invariant under a screw motion, and the relabelling i -> i + 1
-   fits every sphere but the two ends to a fraction of a pixel; only the
-   end spheres tell the hypotheses apart.
-4. orientation: the search covers the object upright (as in its calibration
+3. screw shifts: a helix is invariant under a screw motion (helix49 to
+   5e-10 m), and the relabelling i -> i + k fits every sphere but the k end
+   spheres to a fraction of a pixel. The calibrated centres are checked for
+   such shifts (k = +-1 .. +-3 in the file's order) when the identifier is
+   made; the best refined pose composed with each motion is refined and
+   scored too, so the coarse search need not have started every labelling;
+4. decision: the refined pose that leaves the fewest detections unmatched and
+   the fewest predicted spheres undetected that the detector would have found
+   (inside the detector, outline 6 px or more from every other shadow:
+   ``isolated_gap_px``) wins, and it must beat every other labelling by
+   ``min_margin``. Only the end spheres tell the screw shifts apart; when they
+   do not (ends hidden behind neighbours in these frames) a pose that fits is
+   refused with a message naming the screw symmetry (the replay then tries
+   the next frames). Counting every predicted sphere 2 px clear of its
+   neighbours as "missing" (before round 19) buried the end spheres under
+   ~100 spheres the detector refuses anyway, and 12 of 22 independent
+   recordings came out labelled 1-3 spheres along, reported as success.
+5. orientation: the search covers the object upright (as in its calibration
    frame) and turned upside down (rho_X = pi). When both explain the frames
    alike, the calibrated centres decide: an object whose centres map onto
    themselves under that turn (relabelled; the ideal helix49 does, i -> 50 - i)
@@ -68,6 +81,7 @@ from .geometry import (
     DetectorSpec,
     forward_df,
     forward_srf,
+    object_rotation,
     sphere_centres_df,
     static_to_detector_frame,
 )
@@ -121,6 +135,19 @@ class IdentifySettings:
         Otherwise the upright / upside-down question is decided only when one
         pose's mean squared residual is this many times smaller than the
         other's; else the initialisation refuses, naming why.
+    isolated_gap_px : float
+        A predicted sphere counts as missing (no detection near it) only when its shadow lies inside the
+        detector and its outline is at least this far from every other predicted shadow [px]: the detector
+        refuses shadows within 4 px of a neighbour (detect.py ``proximity_margin_px``) and finds only part
+        of those at 4-6 px (ct_detect.md), so closer spheres say nothing about a pose.
+    screw_shifts : int
+        Screw symmetry: the calibrated centres shifted by k places in the file's order (k = +-1 ..
+        +-screw_shifts) that map onto the unshifted ones by a rigid motion to within ``screw_tolerance_m``
+        rms (helix49 does, to 5e-10 m) give labellings that fit every sphere but the k end spheres. The
+        best pose is composed with each such motion and the shifted labellings are scored like any other
+        hypothesis (the coarse search need not start them).
+    screw_tolerance_m : float
+        Rms [m] below which a shift counts as a screw symmetry.
     follow_pose : bool
         Refit the identification pose on the frames assigned so far whenever the
         rotation has covered twice the arc the pose was last fitted on (and at
@@ -144,6 +171,9 @@ class IdentifySettings:
     upside_down: bool = True
     symmetric_tolerance_m: float = 2e-6
     flip_ms_ratio: float = 3.0
+    isolated_gap_px: float = 6.0
+    screw_shifts: int = 3
+    screw_tolerance_m: float = 5e-4
     follow_pose: bool = True
     follow_min_step_deg: float = 10.0
     follow_frames: int = 12
@@ -217,11 +247,23 @@ def _is_flipped(w) -> bool:
 
 def _rigid_rms(a, b) -> float:
     """RMS distance [m] left after the best proper rigid motion of points a (N, 3) onto b (Kabsch)."""
+    return _rigid_fit(a, b)[2]
+
+
+def _rigid_fit(a, b):
+    """Proper rigid motion (R, t) with R a + t ~ b for points a, b (N, 3) and its rms [m] (Kabsch)."""
     ca, cb = a.mean(axis=0), b.mean(axis=0)
     u, _s, vt = np.linalg.svd((a - ca).T @ (b - cb))
     dfix = np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))])
     r = vt.T @ dfix @ u.T
-    return float(np.sqrt(np.mean(np.sum(((a - ca) @ r.T + cb - b) ** 2, axis=1))))
+    t = cb - r @ ca
+    return r, t, float(np.sqrt(np.mean(np.sum((a @ r.T + t - b) ** 2, axis=1))))
+
+
+def _object_angles(r):
+    """(rho_X, rho_Y, rho_Z) with object_rotation(rho_X, rho_Y, rho_Z) = r (Ry Rz Rx)."""
+    rho_z = float(np.arcsin(np.clip(r[1, 0], -1.0, 1.0)))
+    return float(np.arctan2(-r[1, 2], r[1, 1])), float(np.arctan2(-r[2, 0], r[0, 0])), rho_z
 
 
 def _check_centres(c, name="centres_px"):
@@ -282,6 +324,26 @@ class SphereIdentifier:
         self._follow = None       # pose following during the rotation (see _follow_pose)
         self.pose_refits = 0      # how many times the pose was refitted during the rotation
         self._df_cache = (None, None)   # (w bytes, its static_to_detector_frame) of _raw_predict
+        self.screws = self._screw_symmetries()
+
+    def _screw_symmetries(self):
+        """[(k, R, t, rms)]: rigid motions with R c_i + t ~ c_(i+k) (file order) to screw_tolerance_m."""
+        c = self.centres_of_m
+        out = []
+        for k in range(1, min(self.settings.screw_shifts, len(c) - 3) + 1):
+            r, t, rms = _rigid_fit(c[:-k], c[k:])
+            if rms <= self.settings.screw_tolerance_m:
+                out += [(k, r, t, rms), (-k, r.T, -r.T @ t, rms)]
+        return out
+
+    def _shifted_pose(self, w, r, t):
+        """Pose w composed with the object motion x -> r x + t: a sphere is then labelled as the one the
+        motion carries onto it."""
+        r0 = object_rotation(w[10], w[11], w[12])
+        out = np.array(w, dtype=np.float64)
+        out[10], out[11], out[12] = _object_angles(r0 @ r)
+        out[7:10] = r0 @ t + w[7:10]
+        return out
 
     # ------------------------------------------------------------------ model
     @property
@@ -414,17 +476,45 @@ class SphereIdentifier:
             results.append((self._unexplained(frames, pred, r_px, gate),
                             float(np.mean(res ** 2)) if res.size else np.inf, w, res, n_match, gate, pred))
         results.sort(key=lambda t: (t[0], t[1]))
+        # screw symmetry: the labellings shifted along the object, composed onto the best pose
+        for k, r, t, _rms in self.screws:
+            w, res, n_match, nf = self._refine(frames, alphas, self._shifted_pose(results[0][2], r, t), coarse_gate)
+            nfev += nf
+            gate = self._gate(w, alphas)
+            pred, r_px = self._raw_predict(alphas, w)
+            if any(np.max(np.abs(pred - q[6])) < gate for q in results):
+                continue
+            results.append((self._unexplained(frames, pred, r_px, gate),
+                            float(np.mean(res ** 2)) if res.size else np.inf, w, res, n_match, gate, pred))
+        results.sort(key=lambda t: (t[0], t[1]))
         margin = results[1][0] - results[0][0] if len(results) > 1 else np.inf
         note, refuse = "", ""
+        settled = []           # the orientation rival, once _orientation has decided against it
         if margin < self.settings.min_margin and _is_flipped(results[0][2]) != _is_flipped(results[1][2]):
             # upright and upside down explain the frames alike: symmetric object, or decide on residuals
             results, note, refuse = self._orientation(results, frames)
-            margin = np.inf if not refuse else margin
+            settled = [results[1]]
+        # every other labelling must leave min_margin more unexplained; one that predicts the same
+        # positions (a symmetric object turned upside down) is the same geometry, not a rival
+        win = results[0]
+        rivals = [q[0] for q in results[1:] if not any(q is x for x in settled)
+                  and not self._same_positions(q[6], win[6], win[5])]
+        if not refuse:
+            margin = min(rivals) - win[0] if rivals else np.inf
         bad, _, w, res, n_match, gate_final, _ = results[0]
         self._w = w
         rms = float(np.sqrt(np.mean(res ** 2) * 2)) if res.size else np.nan
-        ok = bool(res.size and rms < gate_final and n_match >= 0.6 * n_det
-                  and margin >= self.settings.min_margin and not refuse)
+        fits = bool(res.size and rms < gate_final and n_match >= 0.6 * n_det)
+        # a pose that fits but whose labelling a screw shift explains as well: say so (no diagnosis needed)
+        screw_refused = bool(fits and margin < self.settings.min_margin and self.screws and not refuse)
+        if screw_refused:
+            k = max(abs(s[0]) for s in self.screws)
+            refuse = (f"the object is screw-symmetric (its centres shifted by up to {k} places in the file's "
+                      f"order map onto themselves to {max(s[3] for s in self.screws) * 1e6:.2g} um rms): "
+                      f"labellings shifted along it differ only at its end spheres, and these frames do not show "
+                      f"the ends clearly enough to tell them apart; use frames where the end spheres are clear "
+                      f"of their neighbours")
+        ok = fits and margin >= self.settings.min_margin and not refuse
         msg = (f"{n_match} of {n_det} detections matched, rms {rms:.3f} px, {bad} unexplained"
                + (f" (next pose hypothesis: {bad + margin})" if np.isfinite(margin) else ""))
         if ok:
@@ -434,9 +524,17 @@ class SphereIdentifier:
         else:
             msg = "pose search failed: " + msg + (f"; {refuse}" if refuse else "")
             self._w = None
-            if diagnose:
+            if diagnose and not screw_refused:       # the pose fits; only the labelling is open
                 msg += "; " + self._diagnose(frames, alphas, srd_m)
         return InitialisationResult(w, res, rms, n_match, n_det, 0.5 * float(np.sum(res ** 2)), ok, msg, nfev)
+
+    @staticmethod
+    def _same_positions(pa, pb, gate) -> bool:
+        """Do two hypotheses predict the same set of positions (whatever the labels) in every frame?"""
+        for a, b in zip(pa, pb):
+            if np.max(np.min(np.linalg.norm(a[:, None] - b[None], axis=2), axis=1)) >= gate:
+                return False
+        return True
 
     def _orientation(self, results, frames):
         """Decide between an upright and an upside-down pose that leave the same detections
@@ -510,16 +608,17 @@ class SphereIdentifier:
                 "SDD and pixel pitch (no mirrored or reversed variant fits either)")
 
     def _unexplained(self, frames, pred, r_px, gate) -> int:
-        """Unmatched detections plus visible, isolated predicted spheres with no detection near."""
+        """Unmatched detections plus visible predicted spheres the detector would accept (outline gap
+        >= ``isolated_gap_px`` to every other shadow) with no detection near."""
         n_unmatched = 0
         n_missing = 0
         for j, f in enumerate(frames):
             idx, _, _ = self._match(f, pred[j], r_px[j], gate)
             n_unmatched += int(np.count_nonzero(idx < 0))
             vis = self._in_view(pred[j], -r_px[j])
-            dd = np.linalg.norm(pred[j][:, None] - pred[j][None], axis=2)
-            np.fill_diagonal(dd, np.inf)
-            iso = vis & (dd.min(axis=1) > 2.0 * r_px[j] + self.settings.separation_margin_px)
+            gap = np.linalg.norm(pred[j][:, None] - pred[j][None], axis=2) - r_px[j][:, None] - r_px[j][None]
+            np.fill_diagonal(gap, np.inf)
+            iso = vis & (gap.min(axis=1) >= self.settings.isolated_gap_px)
             if len(f):
                 near = np.linalg.norm(pred[j][:, None] - f[None], axis=2).min(axis=1)
             else:
