@@ -20,9 +20,12 @@ that went through JPEG compression.
   frame as ``mono16``, ``mono8`` or 8-bit JPEG (decoded again, as a recorder
   that stored JPEG would hand it on).
 
-A tube at any tilt needs no holder: it is the default object (``helix49``
+A tube at any tilt needs no holder here: it is the default object (``helix49``
 with its tube) turned about the beam by the static parameter rho_Z
-(``w[12]``).
+(``w[12]``). That covers rendering and detection; the identity search of a
+leaning object (tilted away from the rotation axis by more than about 2 deg)
+is another matter: it is refused there rather than searched (ct_detect.md,
+"Independent renderer check").
 
 No solver or detector imports this module.
 """
