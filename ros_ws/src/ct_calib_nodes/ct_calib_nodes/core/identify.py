@@ -465,27 +465,27 @@ class SphereIdentifier:
                     break
         nfev = 0
         results = []
-        for w in starts:
-            w, res, n_match, nf = self._refine(frames, alphas, w, coarse_gate)
+
+        def consider(w0):
+            """Refine a start and keep it as a hypothesis unless its labelling is already one."""
+            nonlocal nfev
+            w, res, n_match, nf = self._refine(frames, alphas, w0, coarse_gate)
             nfev += nf
             gate = self._gate(w, alphas)
             pred, r_px = self._raw_predict(alphas, w)
             # the same labelling reached from another start is not a rival hypothesis
             if any(np.max(np.abs(pred - r[6])) < gate for r in results):
-                continue
+                return
             results.append((self._unexplained(frames, pred, r_px, gate),
                             float(np.mean(res ** 2)) if res.size else np.inf, w, res, n_match, gate, pred))
+
+        for w in starts:
+            consider(w)
         results.sort(key=lambda t: (t[0], t[1]))
         # screw symmetry: the labellings shifted along the object, composed onto the best pose
+        best = results[0][2]
         for k, r, t, _rms in self.screws:
-            w, res, n_match, nf = self._refine(frames, alphas, self._shifted_pose(results[0][2], r, t), coarse_gate)
-            nfev += nf
-            gate = self._gate(w, alphas)
-            pred, r_px = self._raw_predict(alphas, w)
-            if any(np.max(np.abs(pred - q[6])) < gate for q in results):
-                continue
-            results.append((self._unexplained(frames, pred, r_px, gate),
-                            float(np.mean(res ** 2)) if res.size else np.inf, w, res, n_match, gate, pred))
+            consider(self._shifted_pose(best, r, t))
         results.sort(key=lambda t: (t[0], t[1]))
         margin = results[1][0] - results[0][0] if len(results) > 1 else np.inf
         note, refuse = "", ""
