@@ -27,15 +27,53 @@ def _f(x) -> float:
     return float("nan") if x is None else float(x)
 
 
-def discrepancy_msg(out: dict, stamp, *, campaign_id: str = "", calibration_topic: str = ""):
-    """metro_msgs/DiscrepancyReport of a run() result; ``stamp`` is the analysed calibration's stamp."""
-    from metro_msgs.msg import DiscrepancyFinding, DiscrepancyReport  # noqa: PLC0415
+#: the report's single-fit figures (NaN where there is no one fit to give them from)
+_FIT_FIELDS = ("noise_floor_u_px", "noise_floor_v_px", "shared_floor_u_px", "shared_floor_v_px", "rms_before_px",
+               "rms_after_px", "held_out_rms_before_px", "held_out_rms_after_px", "chi2_dof_before", "chi2_dof_after")
+
+
+def _report(stamp, campaign_id: str, calibration_topic: str):
+    """An empty metro_msgs/DiscrepancyReport with its header and campaign fields filled."""
+    from metro_msgs.msg import DiscrepancyReport  # noqa: PLC0415
 
     m = DiscrepancyReport()
     m.header.stamp = stamp
     m.header.frame_id = "ct_detector"
     m.campaign_id = campaign_id or ""
     m.calibration_topic = calibration_topic
+    return m
+
+
+def _finding_msg(f: dict, name: str, cv_gain: float):
+    """metro_msgs/DiscrepancyFinding of one finding of discrepancy.json (shown as ``name``)."""
+    from metro_msgs.msg import DiscrepancyFinding  # noqa: PLC0415
+
+    d = DiscrepancyFinding(term=f["term"], name=name, mechanism=f["mechanism"],
+                           significance_sigma=_f(f["significance_sigma"]), delta_bic=_f(f["delta_bic"]),
+                           cv_gain=cv_gain, magnitude=_f(f["magnitude"]), u_magnitude=_f(f.get("magnitude_u")),
+                           magnitude_unit=f["magnitude_unit"])
+    d.parameter_names = [p["name"] for p in f["parameters"]]
+    d.values = [_f(p["value"]) for p in f["parameters"]]
+    d.u_values = [_f(p["u"]) for p in f["parameters"]]
+    d.parameter_units = [p["unit"] for p in f["parameters"]]
+    d.degenerate_with = [str(x) for x in f["degenerate_with"]]
+    d.correlated_with_calibrated = [str(x) for x in f.get("correlated_with_calibrated", [])]
+    d.separate_by = [str(x) for x in f["separate_by"]]
+    return d
+
+
+def _add_limits(m, limits: dict, prefix: str = "") -> None:
+    """Append detection limits (NaN = cannot be seen here) to the report's parallel arrays."""
+    for k, v in limits.items():
+        m.limit_terms.append(prefix + k)
+        lim = v.get("limit")
+        m.limit_values.append(float("nan") if lim is None or not math.isfinite(lim) else float(lim))
+        m.limit_units.append(v["unit"])
+
+
+def discrepancy_msg(out: dict, stamp, *, campaign_id: str = "", calibration_topic: str = ""):
+    """metro_msgs/DiscrepancyReport of a run() result; ``stamp`` is the analysed calibration's stamp."""
+    m = _report(stamp, campaign_id, calibration_topic)
     code, text = status_of(out)
     m.status.code = code
     m.status.message = text
@@ -51,47 +89,23 @@ def discrepancy_msg(out: dict, stamp, *, campaign_id: str = "", calibration_topi
     m.rms_before_px, m.rms_after_px = _f(fb["rms"]), _f(fa["rms"])
     m.held_out_rms_before_px, m.held_out_rms_after_px = _f(fb["held_out_rms"]), _f(fa["held_out_rms"])
     m.chi2_dof_before, m.chi2_dof_after = _f(fb["chi2_dof"]), _f(fa["chi2_dof"])
-    for f in out["findings"]:
-        d = DiscrepancyFinding(term=f["term"], name=f["name"], mechanism=f["mechanism"],
-                               significance_sigma=_f(f["significance_sigma"]), delta_bic=_f(f["delta_bic"]),
-                               cv_gain=_f(f["cv_gain"]), magnitude=_f(f["magnitude"]),
-                               u_magnitude=_f(f.get("magnitude_u")), magnitude_unit=f["magnitude_unit"])
-        d.parameter_names = [p["name"] for p in f["parameters"]]
-        d.values = [_f(p["value"]) for p in f["parameters"]]
-        d.u_values = [_f(p["u"]) for p in f["parameters"]]
-        d.parameter_units = [p["unit"] for p in f["parameters"]]
-        d.degenerate_with = [str(x) for x in f["degenerate_with"]]
-        d.correlated_with_calibrated = [str(x) for x in f["correlated_with_calibrated"]]
-        d.separate_by = [str(x) for x in f["separate_by"]]
-        m.findings.append(d)
+    m.findings = [_finding_msg(f, f["name"], _f(f["cv_gain"])) for f in out["findings"]]
     m.unexplained_axes = [u["axis"] for u in out["unexplained"]]
     m.unexplained_sigma = [_f(u["significance_sigma"]) for u in out["unexplained"]]
-    for k, v in out["detection_limits"].items():
-        m.limit_terms.append(k)
-        lim = v.get("limit")
-        m.limit_values.append(float("nan") if lim is None or not math.isfinite(lim) else float(lim))
-        m.limit_units.append(v["unit"])
+    _add_limits(m, out["detection_limits"])
     m.report_json = report_json(out)
     return m
 
 
 def failed_msg(stamp, code: int, text: str, *, campaign_id: str = "", calibration_topic: str = ""):
     """A report that says the engine could not judge (INSUFFICIENT_DATA / FAILED): adequate false, no verdict."""
-    from metro_msgs.msg import DiscrepancyReport  # noqa: PLC0415
-
-    m = DiscrepancyReport()
-    m.header.stamp = stamp
-    m.header.frame_id = "ct_detector"
-    m.campaign_id = campaign_id or ""
-    m.calibration_topic = calibration_topic
+    m = _report(stamp, campaign_id, calibration_topic)
     m.status.code = int(code)
     m.status.message = text
     m.verdict = "No verdict: " + text
     m.adequate = False
-    nan = float("nan")
-    for f in ("noise_floor_u_px", "noise_floor_v_px", "shared_floor_u_px", "shared_floor_v_px", "rms_before_px",
-              "rms_after_px", "held_out_rms_before_px", "held_out_rms_after_px", "chi2_dof_before", "chi2_dof_after"):
-        setattr(m, f, nan)
+    for f in _FIT_FIELDS:
+        setattr(m, f, float("nan"))
     m.report_json = json.dumps({"verdict": m.verdict, "adequate": False, "error": text})
     return m
 
@@ -161,40 +175,25 @@ def positions_msg(sp: dict, stamp, *, campaign_id: str = "", calibration_topic: 
     """metro_msgs/DiscrepancyReport of every stage position (the error map's data): status, verdict, findings
     named "stage position k: ..." (campaign-long ones "over the campaign: ..."), the median noise floor; the
     single-fit fields (rms, held-out, chi2) are NaN (one fit per position: report_json has them)."""
-    from metro_msgs.msg import DiscrepancyFinding, DiscrepancyReport  # noqa: PLC0415
+    from metro_msgs.msg import DiscrepancyFinding  # noqa: PLC0415
 
     from ct_calib_nodes.core.ct_discrepancy import CATALOGUE_BY_ID  # noqa: PLC0415
     from ct_calib_nodes.io.results import _plain  # noqa: PLC0415
 
-    m = DiscrepancyReport()
-    m.header.stamp = stamp
-    m.header.frame_id = "ct_detector"
-    m.campaign_id = campaign_id or ""
-    m.calibration_topic = calibration_topic
+    m = _report(stamp, campaign_id, calibration_topic)
     code, text = positions_status(sp)
     m.verdict = positions_verdict(sp)
     m.status.code, m.status.message = code, (text + ": " + m.verdict)[:4000]
     m.adequate = code == SUCCESS
     nan = float("nan")
-    floors = [r["noise_floor_px"] for r in sp["positions"]]
-    m.noise_floor_u_px = float(sorted(f["u"] for f in floors)[len(floors) // 2]) if floors else nan
-    m.noise_floor_v_px = float(sorted(f["v"] for f in floors)[len(floors) // 2]) if floors else nan
-    for f in ("shared_floor_u_px", "shared_floor_v_px", "rms_before_px", "rms_after_px", "held_out_rms_before_px",
-              "held_out_rms_after_px", "chi2_dof_before", "chi2_dof_after"):
+    for f in _FIT_FIELDS:
         setattr(m, f, nan)
+    floors = [r["noise_floor_px"] for r in sp["positions"]]
+    if floors:
+        m.noise_floor_u_px = float(sorted(f["u"] for f in floors)[len(floors) // 2])
+        m.noise_floor_v_px = float(sorted(f["v"] for f in floors)[len(floors) // 2])
     camp = sp["campaign"]
-    for f in camp.get("findings", []):
-        d = DiscrepancyFinding(term=f["term"], name="over the campaign: " + f["name"], mechanism=f["mechanism"],
-                               significance_sigma=_f(f["significance_sigma"]), delta_bic=_f(f["delta_bic"]),
-                               cv_gain=nan, magnitude=_f(f["magnitude"]), u_magnitude=_f(f["magnitude_u"]),
-                               magnitude_unit=f["magnitude_unit"])
-        d.parameter_names = [p["name"] for p in f["parameters"]]
-        d.values = [_f(p["value"]) for p in f["parameters"]]
-        d.u_values = [_f(p["u"]) for p in f["parameters"]]
-        d.parameter_units = [p["unit"] for p in f["parameters"]]
-        d.degenerate_with = list(f["degenerate_with"])
-        d.separate_by = list(f["separate_by"])
-        m.findings.append(d)
+    m.findings = [_finding_msg(f, "over the campaign: " + f["name"], nan) for f in camp.get("findings", [])]
     for r in sp["positions"]:
         for f in r["findings"]:
             t = CATALOGUE_BY_ID[f["term"]]
@@ -209,11 +208,7 @@ def positions_msg(sp: dict, stamp, *, campaign_id: str = "", calibration_topic: 
     for u in camp.get("unexplained", []):
         m.unexplained_axes.append(u["axis"])
         m.unexplained_sigma.append(_f(u["significance_sigma"]))
-    for k, v in camp.get("detection_limits", {}).items():
-        m.limit_terms.append(f"campaign.{k}")
-        lim = v.get("limit")
-        m.limit_values.append(float("nan") if lim is None or not math.isfinite(lim) else float(lim))
-        m.limit_units.append(v["unit"])
+    _add_limits(m, camp.get("detection_limits", {}), prefix="campaign.")
     m.report_json = json.dumps(_plain({"verdict": m.verdict, "adequate": m.adequate, "stage_positions": sp}))
     return m
 
