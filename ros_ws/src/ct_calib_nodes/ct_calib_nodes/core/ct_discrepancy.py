@@ -26,7 +26,7 @@ import numpy as np
 
 from .ct_model import StaticKernel
 from .discrepancy import (BIC_THRESHOLD, Candidate, Dataset, _orth, analyse, locate, required_noncentrality,
-                          sigma_from_chi2, verdict_sentence)
+                          finding_entry, sigma_from_chi2, unexplained_entries, verdict_sentence)
 from .geometry import STATIC_PARAM_NAMES, DetectorSpec, motion_rotation, static_to_detector_frame
 from .observations import CentreObservations
 
@@ -476,16 +476,7 @@ def run(obs: CentreObservations, static, detector: DetectorSpec, *, progress=Non
         sep = {t.reveal_by} | {CATALOGUE_BY_ID[d].reveal_by for d in f["degenerate_with"]}
         if f["correlated_nominal"]:
             sep.add("an independent reference for " + ", ".join(f["correlated_nominal"]))
-        findings.append({
-            "term": t.id, "name": t.name, "mechanism": t.mechanism,
-            "significance_sigma": f["significance_sigma"], "delta_bic": f["delta_bic"], "cv_gain": f["cv_gain"],
-            "magnitude": mag, "magnitude_u": mag_u, "magnitude_unit": t.display_unit,
-            "parameters": [{"name": n, "value": float(v), "u": float(uu), "unit": un}
-                           for n, v, uu, un in zip(t.param_names, th, u, t.param_units)],
-            "degenerate_with": list(f["degenerate_with"]),
-            "correlated_with_calibrated": f["correlated_nominal"],
-            "separate_by": sorted(sep) if (f["degenerate_with"] or f["correlated_nominal"]) else [],
-        })
+        findings.append(finding_entry(t, f, th, u, mag, mag_u, t.display_unit, sep))
     # fit after (exact refit) and held-out from the engine's folds
     wh = ctx.wh
     za = wh(r_after)
@@ -507,9 +498,7 @@ def run(obs: CentreObservations, static, detector: DetectorSpec, *, progress=Non
         else:
             limits[c.id] = {"limit": lim["limit"], "unit": t.display_unit, "reveal_by": t.reveal_by,
                             "absorbed_fraction": lim["absorbed_fraction"]}
-    unexplained = [{"axis": e["axis"], "significance_sigma": e["significance_sigma"], "delta_bic": e["delta_bic"],
-                    "amplitude_rms_px": e["amplitude_rms"], "amplitude_max_px": e["amplitude_max"],
-                    "absorbed_by": f"empirical:{e['axis']}"} for e in res["unexplained"]]
+    unexplained = unexplained_entries(res["unexplained"])
     adequate = not findings and not unexplained
     fl = res["floor"]
     floor_d = fl.to_dict("px")

@@ -447,6 +447,24 @@ def _fmt(v, unit):
     return f"{v:.3g} {unit}"
 
 
+def finding_entry(term, f: dict, theta, theta_u, magnitude: float, magnitude_u: float, magnitude_unit: str,
+                  separate_by) -> dict:
+    """One entry of discrepancy.json's ``findings`` for an accepted catalogue term (either cell's adapter):
+    ``term`` has id, name, mechanism, param_names, param_units; ``f`` is the engine's finding (significance,
+    delta BIC, CV gain, degenerate_with, correlated_nominal); ``separate_by`` the acquisitions that would
+    tell it from its rivals, reported only when it has any (degenerate or correlated with the calibration)."""
+    return {
+        "term": term.id, "name": term.name, "mechanism": term.mechanism,
+        "significance_sigma": f["significance_sigma"], "delta_bic": f["delta_bic"], "cv_gain": f["cv_gain"],
+        "magnitude": magnitude, "magnitude_u": magnitude_u, "magnitude_unit": magnitude_unit,
+        "parameters": [{"name": n, "value": float(v), "u": float(uu), "unit": un}
+                       for n, v, uu, un in zip(term.param_names, theta, theta_u, term.param_units)],
+        "degenerate_with": list(f["degenerate_with"]),
+        "correlated_with_calibrated": f["correlated_nominal"],
+        "separate_by": sorted(separate_by) if (f["degenerate_with"] or f["correlated_nominal"]) else [],
+    }
+
+
 def verdict_sentence(findings: list, unexplained: list, *, name_of: dict, n_obs: int, obs_noun: str,
                      floor_sd, floor_axes: str, held_out_before: float, held_out_after: float,
                      clean_examples: str, unit: str = "px") -> str:

@@ -26,8 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ct_calib_nodes.core.discrepancy import (BIC_THRESHOLD, Candidate, Dataset, analyse, unexplained_entries,
-                                             verdict_sentence)
+from ct_calib_nodes.core.discrepancy import (BIC_THRESHOLD, Candidate, Dataset, analyse, finding_entry,
+                                             unexplained_entries, verdict_sentence)
 
 from .calibrate import CalibrationResult, _skew, travel_matrix
 
@@ -516,16 +516,7 @@ def run(result: CalibrationResult, camera_info: dict, *, progress=None, max_term
             g = (th * c.display_scale ** 2) / (g_n * mag)
         mag_u = float(np.sqrt(max(g @ ct @ g, 0.0)))
         sep = {c.reveal_by} | {by_id[d].reveal_by for d in f["degenerate_with"]}
-        findings.append({
-            "term": c.id, "name": c.name, "mechanism": c.mechanism,
-            "significance_sigma": f["significance_sigma"], "delta_bic": f["delta_bic"], "cv_gain": f["cv_gain"],
-            "magnitude": mag, "magnitude_u": mag_u, "magnitude_unit": c.magnitude_unit,
-            "parameters": [{"name": n, "value": float(v), "u": float(uu), "unit": un}
-                           for n, v, uu, un in zip(c.param_names, th, u, c.param_units)],
-            "degenerate_with": list(f["degenerate_with"]),
-            "correlated_with_calibrated": f["correlated_nominal"],
-            "separate_by": sorted(sep) if (f["degenerate_with"] or f["correlated_nominal"]) else [],
-        })
+        findings.append(finding_entry(c, f, th, u, mag, mag_u, c.magnitude_unit, sep))
     limits = {}
     for c in cands:
         lim, t = res["limits"][c.id], CATALOGUE_BY_ID[c.id]
