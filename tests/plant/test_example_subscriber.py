@@ -10,23 +10,16 @@ import time
 import numpy as np
 import pytest
 
-from builtin_interfaces.msg import Time
-from metro_msgs.msg import CtGeometry, ErrorMap, SphereObservation, SphereObservationArray
+
+from metro_msgs.msg import CtGeometry, ErrorMap, SphereObservationArray
 from ct_calib_nodes.core.geometry import forward_df, static_to_detector_frame
 from ct_calib_nodes.core.scenario import default_campaign
 from ct_calib_nodes.io import ct_files
 from ct_calib_nodes.nodes.runner import QOS_LATCHED, QOS_RELIABLE_STREAM
+from ct_obs_msg import observation_array
 
 pytestmark = pytest.mark.ros
 EXAMPLE = pathlib.Path(__file__).resolve().parents[2] / "ros_ws/src/ct_calib_nodes/examples/plant_subscriber.py"
-
-
-def _msg(t_ns, alpha, srd, ids, uv):
-    a = SphereObservationArray(rotary_angle_rad=float(alpha), srd_reported_m=float(srd), image_cols=1024, image_rows=1024)
-    a.header.stamp = Time(sec=t_ns // 10**9, nanosec=t_ns % 10**9)
-    a.observations = [SphereObservation(sphere_id=int(i), col_px=float(c), row_px=float(r), sigma_px=0.05)
-                      for i, (c, r) in zip(ids, uv)]
-    return a
 
 
 def test_example_subscriber_against_live_nodes(start_node, ros_node):
@@ -45,7 +38,7 @@ def test_example_subscriber_against_live_nodes(start_node, ros_node):
     for k in range(3):
         uv = forward_df(g, truth.motions[k], alphas, inst.detector)
         for j, a in enumerate(alphas):
-            pub.publish(_msg(t, a, truth.srd_reported_m[k], ref.ids, uv[j] + rng.normal(0, 0.05, uv[j].shape)))
+            pub.publish(observation_array(t, a, truth.srd_reported_m[k], ref.ids, uv[j] + rng.normal(0, 0.05, uv[j].shape)))
             t += 50_000_000
     maps = []
     ros_node.create_subscription(ErrorMap, "/cell_x/ct/error_map", maps.append, QOS_LATCHED)

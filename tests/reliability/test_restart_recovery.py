@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from ct_calib_nodes.io.journal import Journal, JournalError, journal_path
+from ct_obs_msg import observation_array
 
 
 def test_journal_torn_tail_damage_and_renewal(tmp_path):
@@ -61,17 +62,6 @@ def test_journal_torn_tail_damage_and_renewal(tmp_path):
     assert r.messages == [] and r.events == [] and not path.with_suffix(".journal.new").exists()
 
 
-def _observations_msg(sec, alpha, srd, ids, uv):
-    from builtin_interfaces.msg import Time
-    from metro_msgs.msg import SphereObservation, SphereObservationArray
-
-    a = SphereObservationArray(rotary_angle_rad=alpha, srd_reported_m=srd, image_cols=1024, image_rows=1024)
-    a.header.stamp = Time(sec=sec)
-    for i, (c, r) in zip(ids, uv):
-        a.observations.append(SphereObservation(sphere_id=int(i), col_px=float(c), row_px=float(r), sigma_px=0.05))
-    return a
-
-
 @pytest.mark.ros
 def test_solver_killed_mid_campaign_resumes_bit_identical(start_node, ros_node, tmp_path):
     from metro_msgs.msg import CtGeometry, ErrorMap, SphereObservationArray
@@ -94,14 +84,14 @@ def test_solver_killed_mid_campaign_resumes_bit_identical(start_node, ros_node, 
     sigma = float(rng.uniform(0.03, 0.12))
 
     def campaign(t0, n_second=0):
-        frames = [_observations_msg(t0 + j, float(a), srd[0], ref.ids, uv[0][j] + rng.normal(0, sigma, uv[0][j].shape))
+        frames = [observation_array((t0 + j) * 10**9, float(a), srd[0], ref.ids, uv[0][j] + rng.normal(0, sigma, uv[0][j].shape))
                   for j, a in enumerate(alphas)]
         for j in range(n_second):      # position 2: every third angle
-            frames.append(_observations_msg(t0 + 100 + j, float(alphas[3 * j]), srd[1], ref.ids,
+            frames.append(observation_array((t0 + 100 + j) * 10**9, float(alphas[3 * j]), srd[1], ref.ids,
                                             uv[1][3 * j] + rng.normal(0, sigma, uv[1][3 * j].shape)))
         # the stage moves on: one frame of the next position ends the last one
         k = 2 if n_second else 1
-        frames.append(_observations_msg(t0 + 200, 0.0, srd[k], ref.ids[:1], uv[k][0][:1]))
+        frames.append(observation_array((t0 + 200) * 10**9, 0.0, srd[k], ref.ids[:1], uv[k][0][:1]))
         return frames
 
     camp_a, camp_b = campaign(100), campaign(20_000, n2)

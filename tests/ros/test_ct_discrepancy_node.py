@@ -8,26 +8,18 @@ import json
 
 import numpy as np
 import pytest
-from builtin_interfaces.msg import Time
 
-from metro_msgs.msg import CtGeometry, DiscrepancyReport, SolveStatus, SphereObservation, SphereObservationArray
+
+from metro_msgs.msg import CtGeometry, DiscrepancyReport, SolveStatus, SphereObservationArray
 from ct_calib_nodes.core.geometry import forward_srf
 from ct_calib_nodes.core.scenario import default_static_truth
 from ct_calib_nodes.io import ct_files
 from ct_calib_nodes.nodes.runner import QOS_LATCHED, QOS_RELIABLE_STREAM
+from ct_obs_msg import observation_array
 
 pytestmark = pytest.mark.ros
 
 N_VIEWS, NOISE_PX, STATED_PX, DRIFT_PX = 36, 0.02, 0.05, 0.12
-
-
-def _msg(sec, alpha, srd, ids, uv):
-    a = SphereObservationArray(rotary_angle_rad=float(alpha), srd_reported_m=srd, image_cols=1024, image_rows=1024)
-    a.header.stamp = Time(sec=sec)
-    for i, (c, r) in zip(ids, uv):
-        a.observations.append(SphereObservation(sphere_id=int(i), col_px=float(c), row_px=float(r),
-                                                sigma_px=STATED_PX))
-    return a
 
 
 def test_discrepancy_node_judges_each_solve_and_marks_the_geometry(start_node, ros_node, tmp_path):
@@ -58,7 +50,7 @@ def test_discrepancy_node_judges_each_solve_and_marks_the_geometry(start_node, r
             tau = j / (N_VIEWS - 1) - 0.5
             obs = uv[j] + rng.normal(0, NOISE_PX, uv[j].shape)
             obs[:, 0] += drift * tau                       # the panel creeps along its columns
-            pubs[ns].publish(_msg(300 + j, a, 0.364, ref.ids, obs))
+            pubs[ns].publish(observation_array((300 + j) * 10**9, a, 0.364, ref.ids, obs, STATED_PX))
 
     def done():
         return all(reports[ns] for ns in cells) and any(g.static_estimate.status.code == SolveStatus.POOR_FIT

@@ -15,25 +15,16 @@ import numpy as np
 import pytest
 from builtin_interfaces.msg import Time
 
-from metro_msgs.msg import DiscrepancyReport, ErrorMap, SolveStatus, SphereObservation, SphereObservationArray
+from metro_msgs.msg import DiscrepancyReport, ErrorMap, SolveStatus, SphereObservationArray
 from ct_calib_nodes.core.geometry import forward_df, static_to_detector_frame
 from ct_calib_nodes.core.scenario import default_campaign
 from ct_calib_nodes.io import ct_files
 from ct_calib_nodes.nodes.runner import QOS_LATCHED, QOS_RELIABLE_STREAM
+from ct_obs_msg import observation_array
 
 pytestmark = pytest.mark.ros
 
 N_VIEWS, NOISE_PX, STATED_PX, DRIFT_PX, DRIFT_AT = 24, 0.02, 0.05, 0.12, 1
-
-
-def _msg(ns, alpha, srd, ids, uv):
-    a = SphereObservationArray(rotary_angle_rad=float(alpha), srd_reported_m=float(srd), image_cols=1024,
-                               image_rows=1024)
-    a.header.stamp = Time(sec=int(ns // 1_000_000_000), nanosec=int(ns % 1_000_000_000))
-    for i, (c, r) in zip(ids, uv):
-        a.observations.append(SphereObservation(sphere_id=int(i), col_px=float(c), row_px=float(r),
-                                                sigma_px=STATED_PX))
-    return a
 
 
 def test_every_stage_position_is_judged_and_the_error_map_marked(start_node, ros_node, tmp_path):
@@ -75,7 +66,7 @@ def test_every_stage_position_is_judged_and_the_error_map_marked(start_node, ros
             obs = uv[j] + rng.normal(0, NOISE_PX, uv[j].shape)
             if k == DRIFT_AT:
                 obs[:, 0] += DRIFT_PX * (j / (N_VIEWS - 1) - 0.5)        # the panel creeps along its columns
-            pub.publish(_msg(t_ns, a, camp.srd_reported_m[k], ref.ids, obs))
+            pub.publish(observation_array(t_ns, a, camp.srd_reported_m[k], ref.ids, obs, STATED_PX))
             t_ns += 1_000_000_000
         t_ns += 60 * 1_000_000_000                                      # stage travel between positions
 

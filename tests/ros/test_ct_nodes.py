@@ -12,6 +12,7 @@ from ct_calib_nodes.core.scenario import default_static_truth
 from ct_calib_nodes.io import ct_files
 from ct_calib_nodes.io.convert import image_from_array
 from ct_calib_nodes.nodes.runner import QOS_LATCHED, QOS_RELIABLE_STREAM
+from ct_obs_msg import observation_array
 
 pytestmark = pytest.mark.ros
 
@@ -78,16 +79,6 @@ def test_sphere_detector_skips_bad_frames_and_keeps_running(start_node, ros_node
     assert log.count("skipped") >= 6
 
 
-def _observations_msg(sec, alpha, srd, ids, uv, nan_at=None):
-    a = SphereObservationArray(rotary_angle_rad=alpha, srd_reported_m=srd, image_cols=1024, image_rows=1024)
-    a.header.stamp = Time(sec=sec)
-    for i, (c, r) in zip(ids, uv):
-        a.observations.append(SphereObservation(sphere_id=int(i), col_px=float(c), row_px=float(r), sigma_px=0.05))
-    if nan_at is not None:
-        a.observations[nan_at].col_px = float("nan")
-    return a
-
-
 def test_geometry_solver_answers_publishes_and_skips_bad(start_node, ros_node, cell):
     from ct_calib_nodes.core.geometry import forward_srf
 
@@ -117,11 +108,13 @@ def test_geometry_solver_answers_publishes_and_skips_bad(start_node, ros_node, c
     alphas = 2 * np.pi * np.arange(24) / 24
     uv = forward_srf(truth, ref.centres_of_m, alphas, instrument.detector)
     rng = np.random.default_rng(5)
-    pub.publish(_observations_msg(100, 0.0, 0.364, ref.ids, uv[0], nan_at=3))          # bad: NaN centre
-    pub.publish(_observations_msg(101, float("nan"), 0.364, ref.ids, uv[0]))          # bad: NaN angle
+    bad = observation_array(100 * 10**9, 0.0, 0.364, ref.ids, uv[0])
+    bad.observations[3].col_px = float("nan")
+    pub.publish(bad)                                                                 # bad: NaN centre
+    pub.publish(observation_array(101 * 10**9, float("nan"), 0.364, ref.ids, uv[0]))          # bad: NaN angle
     for j, a in enumerate(alphas):
         noisy = uv[j] + rng.normal(0, 0.05, uv[j].shape)
-        pub.publish(_observations_msg(200 + j, float(a), 0.364, ref.ids, noisy))
+        pub.publish(observation_array((200 + j) * 10**9, float(a), 0.364, ref.ids, noisy))
     ros_node.spin_until(lambda: False, timeout=1.5)
     r = call()
     assert r.accepted, r.message
