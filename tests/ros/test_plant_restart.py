@@ -13,7 +13,7 @@ from ct_calib_nodes.io import ct_files
 from ct_calib_nodes.io.history import History
 from ct_calib_nodes.nodes.runner import QOS_LATCHED, QOS_RELIABLE_STREAM
 
-from test_ct_nodes import _observations_msg  # noqa: E402
+from ct_obs_msg import observation_array  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -56,7 +56,8 @@ def test_restart_republishes_latest_valid_and_failures_never_replace_it(start_no
 
     # 1. a valid calibration, stored
     node = start_node("ct_calib_nodes", "ct_geometry_solver", *args, name="solver1")
-    _feed(ros_node, [_observations_msg(200 + j, float(a), 0.364, ref.ids, uv[j] + rng.normal(0, 0.05, uv[j].shape))
+    _feed(ros_node, [observation_array((200 + j) * 10**9, float(a), 0.364, ref.ids,
+                                       uv[j] + rng.normal(0, 0.05, uv[j].shape))
                      for j, a in enumerate(alphas)])
     r = _call(ros_node, node)
     assert r.accepted and r.result.status.code == SolveStatus.SUCCESS, r.message
@@ -80,7 +81,7 @@ def test_restart_republishes_latest_valid_and_failures_never_replace_it(start_no
     bad = []
     for j, a in enumerate(alphas):
         perm = rng.permutation(len(ref.ids))
-        bad.append(_observations_msg(300 + j, float(a), 0.364, ref.ids[perm], uv[j]))
+        bad.append(observation_array((300 + j) * 10**9, float(a), 0.364, ref.ids[perm], uv[j]))
     _feed(ros_node, bad)
     r = _call(ros_node, node)
     assert r.accepted and r.result.status.code != SolveStatus.SUCCESS, r.result.status.message
@@ -118,9 +119,10 @@ def test_interleaved_campaign_refused_not_merged(start_node, ros_node):
     alphas = 2 * np.pi * np.arange(12) / 12
     uv = forward_srf(default_static_truth(), ref.centres_of_m, alphas, instrument.detector)
     rng = np.random.default_rng(4)
-    frames = [_observations_msg(100 + j, float(a), 0.364, ref.ids, uv[j] + rng.normal(0, 0.05, uv[j].shape))
+    frames = [observation_array((100 + j) * 10**9, float(a), 0.364, ref.ids,
+                                uv[j] + rng.normal(0, 0.05, uv[j].shape))
               for j, a in enumerate(alphas)]
-    other = [_observations_msg(500 + j, float(a), 0.364, ref.ids, uv[j] + 3.0) for j, a in enumerate(alphas)]
+    other = [observation_array((500 + j) * 10**9, float(a), 0.364, ref.ids, uv[j] + 3.0) for j, a in enumerate(alphas)]
     _feed(ros_node, frames + other)
     r = _call(ros_node, node)
     assert r.accepted and r.result.status.code == SolveStatus.SUCCESS, r.result.status.message
