@@ -60,11 +60,16 @@ def test_sphere_detector_skips_bad_frames_and_keeps_running(start_node, ros_node
     for img, js in bad:
         pub_j.publish(js)
         pub_i.publish(img)
-    pub_i.publish(image_from_array(good, Time(sec=6), "ct_detector"))
-    pub_j.publish(_stage(6, alpha=0.3))
+    # The good frame comes last in stamp order too: the detector takes images to arrive in stamp
+    # order, and an image stamped after a stage reading that has not been paired yet drops it as
+    # overtaken (its image was lost). With the good frame stamped 6 after the bad one stamped 7,
+    # the small stage reading 6 could overtake the 2 MB image 7 in DDS and then be dropped by it
+    # (stop-18 CI, 1 run in many).
+    pub_i.publish(image_from_array(good, Time(sec=8), "ct_detector"))
+    pub_j.publish(_stage(8, alpha=0.3))
     assert ros_node.spin_until(lambda: got, timeout=60), node.log()
     ros_node.spin_until(lambda: False, timeout=1.0)
-    assert [o.header.stamp.sec for o in got] == [6]           # only the good frame came out
+    assert [o.header.stamp.sec for o in got] == [8]           # only the good frame came out
     obs = got[0]
     ok = [o for o in obs.observations if o.flag == SphereObservation.ACCEPTED]
     assert len(ok) >= 40 and len({o.sphere_id for o in ok}) == len(ok)
