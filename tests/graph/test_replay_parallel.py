@@ -161,3 +161,22 @@ def test_frame_slots_hand_over_and_refuse_cleanly():
     huge = type("Huge", (_FrameSlots,), {"MAX_BYTES": 1 << 62})(1 << 40, 1 << 20)   # an exabyte: no room
     assert huge.put(b"x") is None and huge.path is None
     huge.close()
+
+
+def test_frame_slots_of_a_killed_replay_are_removed(tmp_path):
+    """A replay killed with SIGKILL leaves its slot file; the next replay removes files whose
+    creating process is gone and keeps those of running processes and foreign names."""
+    import os
+    import subprocess
+
+    from ct_calib_nodes.offline import _FrameSlots
+
+    dead = subprocess.Popen(["true"])
+    dead.wait()                                     # a process id that no longer runs
+    orphan = tmp_path / f"metro_replay_{dead.pid}_abc123"
+    alive = tmp_path / f"metro_replay_{os.getpid()}_def456"
+    other = tmp_path / "metro_replay_notapid_x"
+    for f in (orphan, alive, other):
+        f.write_bytes(b"\0" * 4096)
+    assert _FrameSlots.sweep_orphans(str(tmp_path)) == [str(orphan)]
+    assert not orphan.exists() and alive.exists() and other.exists()

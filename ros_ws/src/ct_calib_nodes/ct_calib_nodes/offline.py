@@ -165,8 +165,10 @@ class _FrameSlots:
         n = max(1, min(int(n_slots), self.MAX_BYTES // self.size))
         self.mm, self.path, self.free = None, None, []
         shm = "/dev/shm"
+        self.sweep_orphans(shm)
         try:
-            fd, self.path = tempfile.mkstemp(prefix="metro_replay_", dir=shm if os.path.isdir(shm) else None)
+            fd, self.path = tempfile.mkstemp(prefix=f"metro_replay_{os.getpid()}_",
+                                             dir=shm if os.path.isdir(shm) else None)
         except OSError:
             return                      # no slots: every frame through the pipe
         try:
@@ -204,6 +206,34 @@ class _FrameSlots:
             except FileNotFoundError:
                 pass
             self.path = None
+
+    @staticmethod
+    def sweep_orphans(shm: str = "/dev/shm") -> list[str]:
+        """Remove slot files that a killed replay left (SIGKILL runs no clean-up): their name holds
+        the creating process's id; a file of ours whose process is gone is deleted. Returns them."""
+        removed = []
+        try:
+            names = os.listdir(shm)
+        except OSError:
+            return removed
+        for name in names:
+            parts = name.split("_")
+            if not name.startswith("metro_replay_") or len(parts) < 4 or not parts[2].isdigit():
+                continue
+            path = os.path.join(shm, name)
+            try:
+                if os.stat(path).st_uid != os.getuid():
+                    continue
+                os.kill(int(parts[2]), 0)      # the owner still runs (or is another user's): keep
+            except ProcessLookupError:
+                try:
+                    os.unlink(path)
+                    removed.append(path)
+                except OSError:
+                    pass
+            except OSError:
+                continue
+        return removed
 
     @staticmethod
     def view(ref):

@@ -199,6 +199,9 @@ class CtProjectionSim(Node):
 
 
 def main(args=None):
+    from ct_calib_nodes.nodes.runner import release_frame_memory  # noqa: PLC0415
+
+    print(f"[ct_projection_sim] {release_frame_memory()}", flush=True)   # 2-8 MB frames in deep queues
     raise SystemExit(run_node(CtProjectionSim, args))
 
 

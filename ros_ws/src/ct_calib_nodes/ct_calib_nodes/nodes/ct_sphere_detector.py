@@ -239,6 +239,9 @@ class CtSphereDetector(Node):
 
 
 def main(args=None):
+    from ct_calib_nodes.nodes.runner import release_frame_memory  # noqa: PLC0415
+
+    print(f"[ct_sphere_detector] {release_frame_memory()}", flush=True)   # 2-8 MB frames in deep queues
     raise SystemExit(run_node(CtSphereDetector, args))
 
 
