@@ -146,16 +146,7 @@ class CtErrorMotion(Node):
                                            centre_uncertainty_m=self.ref.center_uncertainty_m)
 
     def _on_obs(self, msg):
-        if not self.journal.replaying:
-            self.obs_rate.tick()
-            if not self.journal.continues(msg, self.guard):
-                self.reset_campaign()
-        if plant.refused_as_other_campaign(self, msg):
-            return
-        k = self.intake.add(msg)
-        if k is not None:
-            plant.accept_campaign_msg(self.guard, msg)
-            self.journal.accepted(msg)
+        k = plant.take_campaign_observation(self, msg)
         if k is not None and k >= 2 and k == len(self.acc.positions) - 1 and self.acc.positions[k].n_frames == 1:
             self._solve_complete(final=False)      # position k-1 just completed
 

@@ -136,16 +136,8 @@ class CtGeometrySolver(Node):
         self.result, self.solved_n_frames, self.final_journaled = None, -1, False
 
     def _on_obs(self, msg):
-        if not self.journal.replaying:
-            self.obs_rate.tick()
-            if not self.journal.continues(msg, self.guard):
-                self.reset_campaign()
-        if plant.refused_as_other_campaign(self, msg):
-            return
-        k = self.intake.add(msg)
+        k = plant.take_campaign_observation(self, msg)
         if k is not None:
-            plant.accept_campaign_msg(self.guard, msg)
-            self.journal.accepted(msg)
             self.final_journaled = False
         if k is not None and k >= 1 and self.result is None and not self.journal.replaying:
             self._solve("the stage moved to position 2")

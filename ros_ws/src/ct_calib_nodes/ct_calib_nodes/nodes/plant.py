@@ -198,6 +198,24 @@ def accept_campaign_msg(guard, msg) -> None:
     guard.accept(stamp_ns(msg.header.stamp), msg.srd_reported_m, msg.rotary_angle_rad)
 
 
+def take_campaign_observation(node, msg):
+    """The solver nodes' intake of one observation message: the rate and a campaign change (the
+    journal resets the node's campaign) for live messages, other campaigns refused, then
+    ``node.intake``; a message taken is accepted into the campaign guard and journaled. Returns
+    the stage position index it went to, or None (refused or bad: counted and logged)."""
+    if not node.journal.replaying:
+        node.obs_rate.tick()
+        if not node.journal.continues(msg, node.guard):
+            node.reset_campaign()
+    if refused_as_other_campaign(node, msg):
+        return None
+    k = node.intake.add(msg)
+    if k is not None:
+        accept_campaign_msg(node.guard, msg)
+        node.journal.accepted(msg)
+    return k
+
+
 def _text(v) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
