@@ -208,10 +208,9 @@ def write_report(out: dict, tmp: pathlib.Path, plots: list, recording) -> None:
 
 def main(argv=None) -> int:
     from ct_calib_nodes.core import ct_discrepancy  # noqa: PLC0415
-    from ct_calib_nodes.io import ct_files  # noqa: PLC0415
     from ct_calib_nodes.io.atomic import staged_outputs  # noqa: PLC0415
     from ct_calib_nodes.io.results import write_json_atomic  # noqa: PLC0415
-    from ct_calib_nodes.offline import load_recording_files, solve_recording  # noqa: PLC0415
+    from ct_calib_nodes.offline import cli_recording_files, solve_recording  # noqa: PLC0415
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
@@ -226,17 +225,12 @@ def main(argv=None) -> int:
     ap.add_argument("--workers", type=int, default=None,
                     help="detection worker processes (default: the cores available, at most 8)")
     args = ap.parse_args(argv)
-    rec = pathlib.Path(args.recording)
-    if not rec.exists():
-        print(f"ct_discrepancy: no recording at {rec}", file=sys.stderr)
+    got = cli_recording_files("ct_discrepancy", args)
+    if got is None:
         return 2
-    try:
-        f = load_recording_files(rec, args.instrument, args.reference_object)
-        inst_path, how_i, ref_path, how_r = f.instrument_path, f.instrument_how, f.reference_path, f.reference_how
-        instrument, ref, thermal_note = f.instrument, f.ref, f.thermal_note
-    except ct_files.CtFileError as exc:
-        print(f"ct_discrepancy: {exc}", file=sys.stderr)
-        return 2
+    rec, f = got
+    inst_path, how_i, ref_path, how_r = f.instrument_path, f.instrument_how, f.reference_path, f.reference_how
+    instrument, ref, thermal_note = f.instrument, f.ref, f.thermal_note
     say = lambda m: print(f"[discrepancy] {m}", flush=True)  # noqa: E731
     say(f"instrument file {inst_path} ({how_i}); reference object {ref_path} ({how_r}); {thermal_note}")
     t0 = time.perf_counter()

@@ -700,6 +700,21 @@ def load_recording_files(recording: pathlib.Path, instrument=None, reference_obj
     return RecordingFiles(inst_path, how_i, ref_path, how_r, inst, ref, note)
 
 
+def cli_recording_files(prog: str, args):
+    """The command-line tools' first step: (recording path, RecordingFiles) from ``args.recording``,
+    ``args.instrument`` and ``args.reference_object``, or None after saying on stderr, as ``prog``,
+    what is missing or wrong (the caller exits 2)."""
+    rec = pathlib.Path(args.recording)
+    if not rec.exists():
+        print(f"{prog}: no recording at {rec}", file=sys.stderr)
+        return None
+    try:
+        return rec, load_recording_files(rec, args.instrument, args.reference_object)
+    except ct_files.CtFileError as exc:
+        print(f"{prog}: {exc}", file=sys.stderr)
+        return None
+
+
 def _store_history(db, res, rec, files, namespace, source="offline"):
     """Every offline solve (usable or not) goes into the calibration history; a history that cannot be
     written is reported, the results are still written."""
@@ -747,17 +762,12 @@ def main(argv=None) -> int:
     ap.add_argument("--history", default="", help="calibration history database (default $METRO_HISTORY_DB or "
                                                   "~/.local/share/metro_cell/history.sqlite; none = do not record)")
     args = ap.parse_args(argv)
-    rec = pathlib.Path(args.recording)
-    if not rec.exists():
-        print(f"ct_offline_solve: no recording at {rec}", file=sys.stderr)
+    got = cli_recording_files("ct_offline_solve", args)
+    if got is None:
         return 2
-    try:
-        f = load_recording_files(rec, args.instrument, args.reference_object)
-        inst_path, how_i, ref_path, how_r = f.instrument_path, f.instrument_how, f.reference_path, f.reference_how
-        instrument, ref, thermal_note = f.instrument, f.ref, f.thermal_note
-    except ct_files.CtFileError as exc:
-        print(f"ct_offline_solve: {exc}", file=sys.stderr)
-        return 2
+    rec, f = got
+    inst_path, how_i, ref_path, how_r = f.instrument_path, f.instrument_how, f.reference_path, f.reference_how
+    instrument, ref, thermal_note = f.instrument, f.ref, f.thermal_note
     from ct_calib_nodes.io import namespaces  # noqa: PLC0415
     try:
         namespace = namespaces.find_namespace(rec, args.namespace)

@@ -604,22 +604,10 @@ def _fit_one(points: np.ndarray, fitter: str):
 
 
 def _ellipse_residuals(points: np.ndarray, p: np.ndarray):
-    """Approximate orthogonal distances of points (N, 2) from ellipse p and outward normals."""
-    cx, cy, a, b, ang = p
-    c, s = np.cos(ang), np.sin(ang)
-    dx, dy = points[:, 0] - cx, points[:, 1] - cy
-    xp = c * dx + s * dy
-    yp = -s * dx + c * dy
-    # gradient of F = (x/a)^2 + (y/b)^2 - 1; Sampson distance F / |grad F|
-    f = (xp / a) ** 2 + (yp / b) ** 2 - 1.0
-    gx, gy = 2 * xp / a ** 2, 2 * yp / b ** 2
-    gn = np.hypot(gx, gy)
-    gn = np.where(gn > 0, gn, 1.0)
-    d = f / gn
-    # outward normal in image coordinates
-    nx = (c * gx - s * gy) / gn
-    ny = (s * gx + c * gy) / gn
-    return d, nx, ny
+    """Approximate orthogonal distances of points (N, 2) from ellipse p and outward normals
+    (:func:`_residuals_rows` for one ellipse)."""
+    d, nx, ny = _residuals_rows(points[None, :, 0], points[None, :, 1], np.asarray(p, np.float64)[None, :])
+    return d[0], nx[0], ny[0]
 
 
 def _geometric_refine(points: np.ndarray, p0: np.ndarray, iters: int = 6) -> np.ndarray:
@@ -1877,7 +1865,9 @@ def _fit_rows(ex, ey, sel, rows_, fitter):
 
 
 def _residuals_rows(ex, ey, fits):
-    """``_ellipse_residuals`` of every candidate's points (C, R) against its own fit (C, 5)."""
+    """Approximate orthogonal (Sampson: F / |grad F|, F = (x/a)^2 + (y/b)^2 - 1) distances of every
+    candidate's points (C, R) from its own ellipse fit (C, 5: cx, cy, a, b, angle), and the outward
+    normals in image coordinates."""
     cx, cy, a, b, ang = (fits[:, k, None] for k in range(5))
     c, s = np.cos(ang), np.sin(ang)
     dx, dy = ex - cx, ey - cy
