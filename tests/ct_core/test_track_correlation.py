@@ -6,7 +6,10 @@ as independent, the detector tilts came out 1.35x too confident. noise.py estima
 of each sphere's within-projection residuals l projections apart from the residuals alone and the
 sandwich covariance carries it. Here the truth is known: every sphere's column and row errors follow
 a stationary AR(1) process in projection order (rho_u = 0.5, rho_v = 0.3; the marginal sd is the
-reported sigma), independent between spheres.
+reported sigma), independent between spheres. A second shape, closer to a band crossing: each
+sphere's column error holds a bias for blocks of 4 consecutive projections (random phase per sphere)
+on top of independent noise of the same size (correlation 0.375, 0.25, 0.125, 0 at lags 1-4: not
+AR(1)).
 
 Statistics: N campaigns give a z-score sd with standard error ~1/sqrt(2N) (0.058 at N = 150); the
 bands are 4 of those about 1 (0.77-1.23), and the uncorrected tilts must be out of them (their
@@ -29,6 +32,7 @@ N_VIEWS = 36
 RHO = (0.5, 0.3)             # AR(1) coefficient of the column and row errors along a track
 BAND = 4.0 / np.sqrt(2 * N_TRIALS)
 INSTRUMENT = slice(0, 7)
+N_BLOCK = 100
 
 
 def _ar1_track_noise(obs, rho, sd, rng):
@@ -42,9 +46,21 @@ def _ar1_track_noise(obs, rho, sd, rng):
     return e[obs.sphere_index, np.searchsorted(views, obs.view_index)]
 
 
+def _block_noise(obs, rng, block, sd_bias, sd):
+    """(Q,) a bias held for ``block`` consecutive projections (random phase per sphere) + white noise."""
+    views = np.unique(obs.view_index)
+    n_s = int(obs.sphere_index.max()) + 1
+    which = (np.arange(views.size)[None, :] + rng.integers(0, block, n_s)[:, None]) // block
+    bias = np.take_along_axis(rng.normal(0.0, sd_bias, (n_s, int(which.max()) + 1)), which, 1)
+    return bias[obs.sphere_index, np.searchsorted(views, obs.view_index)] + rng.normal(0.0, sd, obs.n_obs)
+
+
 def _noisy(clean, rng, rho):
     uv = clean.uv_px.copy()
-    if rho is None:
+    if rho == "block":
+        uv[:, 0] += _block_noise(clean, rng, 4, SIGMA_PX / np.sqrt(2), SIGMA_PX / np.sqrt(2))
+        uv[:, 1] += rng.normal(0.0, SIGMA_PX, clean.n_obs)
+    elif rho is None:
         uv += rng.normal(0.0, SIGMA_PX, uv.shape)
     else:
         uv[:, 0] += _ar1_track_noise(clean, rho[0], SIGMA_PX, rng)
@@ -53,13 +69,13 @@ def _noisy(clean, rng, rho):
                               np.full(clean.n_obs, SIGMA_PX), clean.minor_axis_px)
 
 
-def _campaign(centres, detector, campaign, rho, seed):
+def _campaign(centres, detector, campaign, rho, seed, n_trials=N_TRIALS):
     alphas = np.linspace(0.0, 2 * np.pi, N_VIEWS, endpoint=False)
     rng = np.random.default_rng(seed)
     clean = simulate_observations(campaign.static_w, centres, detector, alphas, rng, 0.0,
                                   contour_radius_m=CONTOUR_RADIUS_M).obs
     out = []
-    for _ in range(N_TRIALS):
+    for _ in range(n_trials):
         st = solve_static(_noisy(clean, rng, rho), centres, detector, campaign.srd_reported_m[0],
                           campaign.sdd_reported_m)
         assert st.success, st.message
@@ -71,6 +87,11 @@ def _campaign(centres, detector, campaign, rho, seed):
 @pytest.fixture(scope="module")
 def correlated(centres, detector, campaign):
     return _campaign(centres, detector, campaign, RHO, 1402)
+
+
+@pytest.fixture(scope="module")
+def block_bias(centres, detector, campaign):
+    return _campaign(centres, detector, campaign, "block", 1404, n_trials=N_BLOCK)
 
 
 @pytest.fixture(scope="module")
@@ -108,6 +129,17 @@ def test_correlated_tracks_covered_only_with_the_correction(correlated):
     lag1 = np.array([[t[3].track_lag_corr_u[0], t[3].track_lag_corr_v[0]] for t in correlated])
     assert np.all(np.abs(lag1.mean(axis=0) - np.array(RHO)) < 0.03), lag1.mean(axis=0)
     assert all(t[3].track_corr_u and t[3].track_corr_v for t in correlated)
+
+
+def test_band_crossing_bias_covered(block_bias):
+    z = _z(block_bias, 1)
+    sd = z.std(axis=0, ddof=1)
+    assert np.all(np.abs(sd - 1.0) < 4.0 / np.sqrt(2 * N_BLOCK)), sd
+    chi2 = [t[0][INSTRUMENT] @ np.linalg.solve(t[4], t[0][INSTRUMENT]) for t in block_bias]
+    assert abs(np.mean(chi2) - 7.0) < 4.0 * np.sqrt(2 * 7 / N_BLOCK), np.mean(chi2)
+    # the measured lags follow the triangle (0.375, 0.25, 0.125, 0)
+    lags = np.mean([t[3].track_lag_corr_u[:4] for t in block_bias], axis=0)
+    assert np.all(np.abs(lags - [0.375, 0.25, 0.125, 0.0]) < 0.03), lags
 
 
 def test_independent_errors_are_not_inflated(independent):
