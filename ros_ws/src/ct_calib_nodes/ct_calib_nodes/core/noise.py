@@ -27,7 +27,8 @@ residuals, separately for columns (u) and rows (v):
   sphere's track; the run of significantly positive lags from lag 1 (more
   than 2 standard errors) as measured, continued as AR(1) beyond, shrunk if
   needed until a track's correlation matrix is positive definite.
-  ``track_lag_corr_*`` report the raw estimates (diagnostic, lags 1..L).
+  ``track_lag_corr_*`` report the raw estimates (diagnostic, lags 1, 2, ...
+  up to the first one not significant).
 
 The noise model is then Cov(r) = diag(f_a^2 sigma_q^2) + tau_a^2 1 1^T per
 projection and axis, plus f_a^2 sigma_i sigma_j c_a(l) between observations
@@ -73,7 +74,8 @@ class NoiseModel:
         Whether the detector's per-observation sigma was used.
     track_lag_corr_u, track_lag_corr_v : tuple of float
         Estimated correlation of a sphere's whitened within-projection residuals l projections
-        apart (l = 1..L, acquisition order), pooled over spheres; () when not estimated.
+        apart (acquisition order), pooled over spheres, for l = 1, 2, ... up to the first lag not
+        significantly positive (at most min(TRACK_MAX_LAG, V / 4)); () when not estimated.
     track_lag_se : tuple of float
         Standard error of those estimates under no correlation (1 / sqrt(pairs)), per lag.
     track_corr_u, track_corr_v : tuple of float
@@ -131,6 +133,14 @@ def _view_ids(view_index):
 TRACK_MAX_LAG = 24
 
 
+def _track_table(sphere_index, vid, n_v: int):
+    """(spheres, projections) table of observation indices, -1 where a sphere was not observed."""
+    sph = np.asarray(sphere_index, dtype=np.int64)
+    table = np.full((int(sph.max()) + 1 if sph.size else 0, n_v), -1, dtype=np.int64)
+    table[sph, vid] = np.arange(sph.size)
+    return table
+
+
 def track_pairs(sphere_index, view_index, lag: int):
     """Observation pairs (i, j) of the same sphere ``lag`` projections apart in acquisition order.
 
@@ -139,43 +149,47 @@ def track_pairs(sphere_index, view_index, lag: int):
     leaves the pairs that would involve it out.
     """
     vid, n_v = _view_ids(np.asarray(view_index))
-    sph = np.asarray(sphere_index, dtype=np.int64)
-    n_s = int(sph.max()) + 1 if sph.size else 0
-    table = np.full((n_s, n_v), -1, dtype=np.int64)
-    table[sph, vid] = np.arange(sph.size)
     if lag <= 0 or lag >= n_v:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    table = _track_table(sphere_index, vid, n_v)
     a, b = table[:, :-lag].ravel(), table[:, lag:].ravel()
     keep = (a >= 0) & (b >= 0)
     return a[keep], b[keep]
 
 
-def _track_correlation(z, sphere_index, view_index, n_v: int):
+def _track_correlation(z, table):
     """Lag correlations of whitened deviations z along sphere tracks: (raw, se, used), each a tuple.
 
-    raw: the pooled estimates at lags 1..L; se: their standard errors with no correlation
-    (1 / sqrt(pairs)); used: the model the covariance takes: the run of significantly positive
-    estimates from lag 1 (> 2 se) as measured, continued to lag L as AR(1) (each lag the previous
-    times the run's last ratio, or times the lag-1 value for a run of one), shrunk if needed until
-    the correlation matrix of a track is positive definite; () when lag 1 is not significant.
+    ``table``: :func:`_track_table`. raw: the pooled estimates at lags 1, 2, ... up to the first one
+    not significantly positive (at most L = min(TRACK_MAX_LAG, V / 4)); se: their standard
+    errors with no correlation (1 / sqrt(pairs)); used: the model the covariance takes: the run of
+    significantly positive estimates from lag 1 (> 2 se) as measured, continued to lag L as AR(1)
+    (each lag the previous times the run's last ratio, or times the lag-1 value for a run of one),
+    shrunk if needed until the correlation matrix of a track is positive definite; () when lag 1 is
+    not significant.
     """
+    n_v = table.shape[1]
     max_lag = min(TRACK_MAX_LAG, n_v // 4)
+    seen = table >= 0
+    zt = np.where(seen, np.asarray(z)[np.maximum(table, 0)], 0.0)
+    zt2 = zt * zt
     raw, se = [], []
     for lag in range(1, max_lag + 1):
-        i, j = track_pairs(sphere_index, view_index, lag)
-        if i.size < 20:
+        n_pairs = int(np.count_nonzero(seen[:, :-lag] & seen[:, lag:]))
+        if n_pairs < 20:
             break
-        den = np.sqrt(float(np.sum(z[i] ** 2)) * float(np.sum(z[j] ** 2)))
-        raw.append(float(np.sum(z[i] * z[j])) / den if den > 0 else 0.0)
-        se.append(1.0 / np.sqrt(i.size))
-    run = 0
-    while run < len(raw) and raw[run] > 2.0 * se[run]:
-        run += 1
+        # sums of squares over the pairs only (a term whose partner is missing is zero in the product)
+        den = np.sqrt(float(np.sum(zt2[:, :-lag] * seen[:, lag:])) * float(np.sum(zt2[:, lag:] * seen[:, :-lag])))
+        raw.append(float(np.sum(zt[:, :-lag] * zt[:, lag:])) / den if den > 0 else 0.0)
+        se.append(1.0 / np.sqrt(n_pairs))
+        if raw[-1] <= 2.0 * se[-1]:
+            break                                 # the first lag not significantly positive ends the run
+    run = len(raw) - 1 if raw and raw[-1] <= 2.0 * se[-1] else len(raw)
     if run == 0:
         return tuple(raw), tuple(se), ()
     used = list(raw[:run])
     ratio = min(used[-1] / used[-2] if run >= 2 else used[0], 0.9)
-    while len(used) < len(raw) and used[-1] * ratio > 1e-3:
+    while len(used) < max_lag and used[-1] * ratio > 1e-3:
         used.append(used[-1] * ratio)
     used = np.array(used)
     # a track's correlation matrix (Toeplitz) is positive definite at every length when the spectral
@@ -215,7 +229,7 @@ def estimate_noise(residuals, sigma, view_index, n_params: int, view_sd_px=None,
     vid, n_v = _view_ids(np.asarray(view_index))
     dof_total = max(2 * q - n_params, 1)
     chi2 = float(np.sum((r / sig) ** 2)) / dof_total
-    factors, taus, lag_raw, lag_used, lag_se = [], [], [], [], ()
+    factors, taus, lag_raw, lag_used, lag_se, table = [], [], [], [], (), None
     for a in range(2):
         ra, sa = r[a * q:(a + 1) * q], sig[a * q:(a + 1) * q]
         w = 1.0 / sa ** 2
@@ -228,7 +242,9 @@ def estimate_noise(residuals, sigma, view_index, n_params: int, view_sd_px=None,
         f2 = float(np.sum(w * dev * dev)) / dof_w if n_v < q else float(np.sum(w * ra * ra)) / max(q - 0.5 * n_params, 1)
         factors.append(np.sqrt(max(f2, 0.0)))
         if sphere_index is not None and n_v >= 8 and f2 > 0:
-            raw, lag_se, used = _track_correlation(dev / sa, sphere_index, view_index, n_v)
+            if table is None:
+                table = _track_table(sphere_index, vid, n_v)
+            raw, lag_se, used = _track_correlation(dev / sa, table)
         else:
             raw, used = (), ()
         lag_raw.append(raw)
@@ -321,15 +337,17 @@ def sandwich_covariance(jac_t, sigma_w, sigma_noise, view_index, noise: NoiseMod
         block = k[:, a * q:(a + 1) * q] / sw[a * q:(a + 1) * q] ** 2
         s = np.stack([np.bincount(vid, row, n_v) for row in block])      # (n, V) per-view sums
         meat += tau * tau * (s @ s.T)
-    if sphere_index is not None:
+    if sphere_index is not None and any(noise.track_corr):
+        table = _track_table(sphere_index, vid, n_v)
         for a, corr in enumerate(noise.track_corr):
             if not corr:
                 continue
             sl = slice(a * q, (a + 1) * q)
             g = k[:, sl] * (sn[sl] / sw[sl] ** 2)        # J^T W times the noise sd, per observation
             for lag, c in enumerate(corr, start=1):
-                i, j = track_pairs(sphere_index, view_index, lag)
-                cross = g[:, i] @ g[:, j].T
+                i, j = table[:, :-lag].ravel(), table[:, lag:].ravel()
+                keep = (i >= 0) & (j >= 0)
+                cross = g[:, i[keep]] @ g[:, j[keep]].T
                 meat += c * (cross + cross.T)
     return normal_inverse @ meat @ normal_inverse
 
