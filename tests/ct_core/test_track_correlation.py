@@ -156,6 +156,32 @@ def test_independent_errors_are_not_inflated(independent):
     assert abs(lag1.mean()) < 0.01, lag1.mean()
 
 
+def test_stated_centre_errors_are_not_counted_twice(centres, detector, campaign):
+    """CMM errors of the calibrated centres put the same offset into every view of a sphere
+    (correlated at every lag); the centre-uncertainty term carries them, so the track correlation
+    is estimated net of them and stays off on otherwise independent errors."""
+    alphas = np.linspace(0.0, 2 * np.pi, N_VIEWS, endpoint=False)
+    rng = np.random.default_rng(1405)
+    u_cmm = 4e-6
+    fired, net, gross = [], [], []
+    for _ in range(40):
+        truth = centres + rng.normal(0.0, u_cmm, centres.shape)
+        clean = simulate_observations(campaign.static_w, truth, detector, alphas, rng, 0.0,
+                                      contour_radius_m=CONTOUR_RADIUS_M).obs
+        obs = _noisy(clean, rng, None)
+        st = solve_static(obs, centres, detector, campaign.srd_reported_m[0], campaign.sdd_reported_m,
+                          centre_uncertainty_m=u_cmm)
+        assert st.success, st.message
+        fired.append(bool(st.noise.track_corr_u or st.noise.track_corr_v))
+        net.append([st.noise.track_lag_corr_u[0], st.noise.track_lag_corr_v[0]])
+        r = -st.residuals_px.T.ravel()                       # blocked, as the solver sees them
+        raw = estimate_noise(r, np.full(r.size, SIGMA_PX), obs.view_index, 13, sphere_index=obs.sphere_index)
+        gross.append([raw.track_lag_corr_u[0], raw.track_lag_corr_v[0]])
+    assert np.mean(gross) > 0.1, np.mean(gross)              # the CMM errors are visible in the tracks ...
+    assert abs(np.mean(net)) < 0.02, np.mean(net)            # ... and taken out
+    assert np.mean(fired) < 0.15, np.mean(fired)
+
+
 def test_no_track_term_without_the_spheres():
     rng = np.random.default_rng(5)
     r = rng.normal(size=400)

@@ -76,8 +76,9 @@ class NoiseModel:
         Estimated correlation of a sphere's whitened within-projection residuals l projections
         apart (acquisition order), pooled over spheres, for l = 1, 2, ... up to the first lag not
         significantly positive (at most min(TRACK_MAX_LAG, V / 4)); () when not estimated.
-    track_lag_se : tuple of float
-        Standard error of those estimates under no correlation (1 / sqrt(pairs)), per lag.
+    track_lag_se_u, track_lag_se_v : tuple of float
+        Standard error of those estimates under no correlation (1 / sqrt(pairs), widened by the
+        scatter of the calibrated centres' errors when their share is taken out), per lag.
     track_corr_u, track_corr_v : tuple of float
         The correlations the covariance uses (lags 1..len), () when none is significant.
     track_sd_inflation : tuple of float
@@ -97,7 +98,8 @@ class NoiseModel:
     sigma_reported: bool
     track_lag_corr_u: tuple = ()
     track_lag_corr_v: tuple = ()
-    track_lag_se: tuple = ()
+    track_lag_se_u: tuple = ()
+    track_lag_se_v: tuple = ()
     track_corr_u: tuple = ()
     track_corr_v: tuple = ()
     track_sd_inflation: tuple = ()
@@ -157,12 +159,14 @@ def track_pairs(sphere_index, view_index, lag: int):
     return a[keep], b[keep]
 
 
-def _track_correlation(z, table):
+def _track_correlation(z, table, known=None):
     """Lag correlations of whitened deviations z along sphere tracks: (raw, se, used), each a tuple.
 
-    ``table``: :func:`_track_table`. raw: the pooled estimates at lags 1, 2, ... up to the first one
-    not significantly positive (at most L = min(TRACK_MAX_LAG, V / 4)); se: their standard
-    errors with no correlation (1 / sqrt(pairs)); used: the model the covariance takes: the run of
+    ``table``: :func:`_track_table`; ``known``: (offset columns (3, Q), stated variance (Q,)) of
+    the calibrated centres, whose expected share is taken out. raw: the pooled estimates at lags
+    1, 2, ... up to the first one not significantly positive (at most L = min(TRACK_MAX_LAG, V / 4));
+    se: their standard errors with no correlation (1 / sqrt(pairs), widened by the scatter of the
+    centres' actual errors about their stated variance); used: the model the covariance takes: the run of
     significantly positive estimates from lag 1 (> 2 se) as measured, continued to lag L as AR(1)
     (each lag the previous times the run's last ratio, or times the lag-1 value for a run of one),
     shrunk if needed until the correlation matrix of a track is positive definite; () when lag 1 is
@@ -171,8 +175,11 @@ def _track_correlation(z, table):
     n_v = table.shape[1]
     max_lag = min(TRACK_MAX_LAG, n_v // 4)
     seen = table >= 0
-    zt = np.where(seen, np.asarray(z)[np.maximum(table, 0)], 0.0)
+    at = np.maximum(table, 0)
+    zt = np.where(seen, np.asarray(z)[at], 0.0)
     zt2 = zt * zt
+    if known is not None:                        # (zc (3, Q), var (Q,)): sd-weighted offset columns
+        kt = np.where(seen, (known[0] * np.sqrt(known[1]))[:, at], 0.0)     # (3, spheres, views)
     raw, se = [], []
     for lag in range(1, max_lag + 1):
         n_pairs = int(np.count_nonzero(seen[:, :-lag] & seen[:, lag:]))
@@ -180,8 +187,17 @@ def _track_correlation(z, table):
             break
         # sums of squares over the pairs only (a term whose partner is missing is zero in the product)
         den = np.sqrt(float(np.sum(zt2[:, :-lag] * seen[:, lag:])) * float(np.sum(zt2[:, lag:] * seen[:, :-lag])))
-        raw.append(float(np.sum(zt[:, :-lag] * zt[:, lag:])) / den if den > 0 else 0.0)
-        se.append(1.0 / np.sqrt(n_pairs))
+        num = float(np.sum(zt[:, :-lag] * zt[:, lag:]))
+        var_known = 0.0
+        if known is not None:
+            # less the part the stated centre errors put in on average; their actual draw scatters
+            # about it (Gaussian quadratic form: variance 2 sum_s |M_s|_F^2, M_s the sphere's
+            # symmetrised lag product of its offset columns), which widens the standard error
+            m = np.einsum("asv,bsv->sab", kt[:, :, :-lag], kt[:, :, lag:])
+            num -= float(np.trace(m, axis1=1, axis2=2).sum())
+            var_known = 2.0 * float(np.sum((0.5 * (m + m.transpose(0, 2, 1))) ** 2))
+        raw.append(num / den if den > 0 else 0.0)
+        se.append(np.sqrt(1.0 / n_pairs + (var_known / den ** 2 if den > 0 else 0.0)))
         if raw[-1] <= 2.0 * se[-1]:
             break                                 # the first lag not significantly positive ends the run
     run = len(raw) - 1 if raw and raw[-1] <= 2.0 * se[-1] else len(raw)
@@ -203,7 +219,7 @@ def _track_correlation(z, table):
 
 
 def estimate_noise(residuals, sigma, view_index, n_params: int, view_sd_px=None,
-                   sphere_index=None) -> NoiseModel:
+                   sphere_index=None, centre_jac=None, centre_var=None) -> NoiseModel:
     """Noise model from the residuals of a weighted least-squares fit.
 
     Parameters
@@ -222,6 +238,14 @@ def estimate_noise(residuals, sigma, view_index, n_params: int, view_sd_px=None,
     sphere_index : ndarray of shape (Q,), optional
         Sphere of each observation: with it (and at least 8 projections) the correlation of
         a sphere's errors in consecutive projections is estimated (``track_corr_*``).
+    centre_jac : ndarray of shape (3, 2Q), optional
+        The residuals' derivatives with respect to the object position (x_P, y_P, z_P), i.e. to an
+        offset of each observation's own sphere centre.
+    centre_var : ndarray of shape (N,), optional
+        Stated variance of each calibrated centre coordinate [m^2]. With ``centre_jac``, the
+        track correlation is estimated net of what these errors put into the residuals (the same
+        offset in every view of a sphere, correlated at every lag; the centre-uncertainty term
+        carries it, so it is not counted twice).
     """
     r = np.asarray(residuals, dtype=float)
     q = r.size // 2
@@ -229,7 +253,7 @@ def estimate_noise(residuals, sigma, view_index, n_params: int, view_sd_px=None,
     vid, n_v = _view_ids(np.asarray(view_index))
     dof_total = max(2 * q - n_params, 1)
     chi2 = float(np.sum((r / sig) ** 2)) / dof_total
-    factors, taus, lag_raw, lag_used, lag_se, table = [], [], [], [], (), None
+    factors, taus, lag_raw, lag_used, lag_se, table = [], [], [], [], [], None
     for a in range(2):
         ra, sa = r[a * q:(a + 1) * q], sig[a * q:(a + 1) * q]
         w = 1.0 / sa ** 2
@@ -244,9 +268,16 @@ def estimate_noise(residuals, sigma, view_index, n_params: int, view_sd_px=None,
         if sphere_index is not None and n_v >= 8 and f2 > 0:
             if table is None:
                 table = _track_table(sphere_index, vid, n_v)
-            raw, lag_se, used = _track_correlation(dev / sa, table)
+            known = None
+            if centre_jac is not None and centre_var is not None:
+                # what the calibrated centres' stated errors put into each track (per sphere, the
+                # same offset in every view: correlated at every lag), whitened like the residuals
+                zc = np.asarray(centre_jac, dtype=float)[:, a * q:(a + 1) * q] / sa
+                known = (zc, np.asarray(centre_var, dtype=float)[np.asarray(sphere_index)])
+            raw, se, used = _track_correlation(dev / sa, table, known)
         else:
-            raw, used = (), ()
+            raw, se, used = (), (), ()
+        lag_se.append(se)
         lag_raw.append(raw)
         lag_used.append(used)
         if view_sd_px is not None:
@@ -269,7 +300,9 @@ def estimate_noise(residuals, sigma, view_index, n_params: int, view_sd_px=None,
     return NoiseModel(factor_u=factors[0], factor_v=factors[1], view_sd_u_px=taus[0], view_sd_v_px=taus[1],
                       chi2_dof=chi2, within_view_correlation_u=rho[0], within_view_correlation_v=rho[1],
                       n_views=n_v, view_sd_source=source, sigma_reported=sigma is not None,
-                      track_lag_corr_u=lag_raw[0], track_lag_corr_v=lag_raw[1], track_lag_se=lag_se,
+                      track_lag_corr_u=lag_raw[0], track_lag_corr_v=lag_raw[1],
+                      track_lag_se_u=lag_se[0], track_lag_se_v=lag_se[1],
+                      
                       track_corr_u=lag_used[0], track_corr_v=lag_used[1])
 
 

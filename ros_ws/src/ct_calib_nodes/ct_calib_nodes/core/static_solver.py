@@ -358,7 +358,10 @@ def static_uncertainty(x, kern: StaticKernel, obs: CentreObservations, sigma, n_
     else:
         r, jt = evaluated[0], np.asarray(evaluated[1]).T
     q = obs.n_obs
-    noise = estimate_noise(r, sigma, obs.view_index, kern.n, sphere_index=obs.sphere_index)
+    u_c = None if centre_uncertainty_m is None else np.broadcast_to(np.asarray(centre_uncertainty_m, dtype=float),
+                                                                    (n_spheres,))
+    noise = estimate_noise(r, sigma, obs.view_index, kern.n, sphere_index=obs.sphere_index, centre_jac=jt[7:10],
+                           centre_var=None if u_c is None else u_c ** 2)
     w = 1.0 / axis_weights_sigma(sigma, q, noise) if weights is None else np.asarray(weights, dtype=float)
     normals = axis_normals(jt, 1.0 / w)
     cov = covariance_from_jacobian(jt.T, r, w, cond_limit=cond_limit, normal=normals[0] + normals[1])
