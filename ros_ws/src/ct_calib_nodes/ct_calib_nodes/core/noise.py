@@ -302,7 +302,6 @@ def estimate_noise(residuals, sigma, view_index, n_params: int, view_sd_px=None,
                       n_views=n_v, view_sd_source=source, sigma_reported=sigma is not None,
                       track_lag_corr_u=lag_raw[0], track_lag_corr_v=lag_raw[1],
                       track_lag_se_u=lag_se[0], track_lag_se_v=lag_se[1],
-                      
                       track_corr_u=lag_used[0], track_corr_v=lag_used[1])
 
 
