@@ -24,9 +24,12 @@ residuals, separately for columns (u) and rows (v):
   consecutive projections, lags 1, 2, ... in acquisition order (a shadow
   crossing a holder's edge band keeps its bias for several views). Pooled
   autocorrelation of the whitened within-projection deviations along every
-  sphere's track; the run of significantly positive lags from lag 1 (more
-  than 2 standard errors) as measured, continued as AR(1) beyond, shrunk if
-  needed until a track's correlation matrix is positive definite.
+  sphere's track, net of what the calibrated centres' stated errors put
+  there (one offset per sphere, correlated at every lag: the centre term of
+  the static solve carries it); the run of significantly positive lags from
+  lag 1 (more than 2 standard errors) as measured, continued as AR(1)
+  beyond, shrunk if needed until a track's correlation matrix is positive
+  definite.
   ``track_lag_corr_*`` report the raw estimates (diagnostic, lags 1, 2, ...
   up to the first one not significant).
 
