@@ -10,6 +10,8 @@ tests/ct_validation/ct_indep_check.py. Two cases run at a time (a process pool o
 
     .venv/bin/python tests/benchmarks/validate_ct_indep.py [--n 24] [--views 30] [--cols 384] [--seed0 7000]
                        [--object-tilt-deg 0.5] [--cases-out FILE.jsonl] [--keep DIR] [--summarise FILE.jsonl]
+    # a solver change on the same frames: run once with --keep DIR --cases-out CASES.jsonl, then
+    .venv/bin/python tests/benchmarks/validate_ct_indep.py --summarise CASES.jsonl --keep DIR --resolve
 
 Prints one JSON line: per-parameter z-score mean and sd (instrument: all cases; object pose: cases where the
 solver kept the file's labelling), the pixel-level discrepancy of the fitted geometry, detections (visible
