@@ -10,6 +10,8 @@ tests/ct_validation/ct_indep_check.py. Two cases run at a time (a process pool o
 
     .venv/bin/python tests/benchmarks/validate_ct_indep.py [--n 24] [--views 30] [--cols 384] [--seed0 7000]
                        [--object-tilt-deg 0.5] [--cases-out FILE.jsonl] [--keep DIR] [--summarise FILE.jsonl]
+    # a solver change on the same frames: run once with --keep DIR --cases-out CASES.jsonl, then
+    .venv/bin/python tests/benchmarks/validate_ct_indep.py --summarise CASES.jsonl --keep DIR --resolve
 
 Prints one JSON line: per-parameter z-score mean and sd (instrument: all cases; object pose: cases where the
 solver kept the file's labelling), the pixel-level discrepancy of the fitted geometry, detections (visible
@@ -42,6 +44,24 @@ def _one(args):
         return ck.run_case(seed, work, cols=cols, n_views=views, object_tilt_deg=tilt)
     except Exception as exc:  # a crash of one case is a finding, not the end of the campaign
         return {"seed": seed, "outcome": "crashed", "message": f"{type(exc).__name__}: {exc}"[-2000:]}
+
+
+def _track_summary(ok):
+    """The static solve's correlation along sphere tracks (noise.py): lag-1 estimates, how often the
+    covariance took it, and how much it widened the instrument uncertainties."""
+    tr = [c["track"] for c in ok if "track" in c]
+    if not tr:
+        return None
+    lag1 = np.array([[t["lag1_u"] if t["lag1_u"] is not None else np.nan,
+                      t["lag1_v"] if t["lag1_v"] is not None else np.nan] for t in tr], float)
+    infl = np.array([t["sd_inflation_instrument"] for t in tr], float)
+    return {"n": len(tr), "lag1_u_median": round(float(np.nanmedian(lag1[:, 0])), 3),
+            "lag1_u_range": [round(float(np.nanmin(lag1[:, 0])), 3), round(float(np.nanmax(lag1[:, 0])), 3)],
+            "lag1_v_median": round(float(np.nanmedian(lag1[:, 1])), 3),
+            "lag1_v_range": [round(float(np.nanmin(lag1[:, 1])), 3), round(float(np.nanmax(lag1[:, 1])), 3)],
+            "used_u": int(sum(t["lags_used_u"] > 0 for t in tr)), "used_v": int(sum(t["lags_used_v"] > 0 for t in tr)),
+            "sd_inflation_instrument_median": [round(float(v), 3) for v in np.median(infl, axis=0)],
+            "sd_inflation_instrument_max": [round(float(v), 3) for v in infl.max(axis=0)]}
 
 
 def summarise(cases):
@@ -98,6 +118,7 @@ def summarise(cases):
                           radial_pooled_px_tube=pooled_radial([c for c in ok if c["physics"]["tube"]]),
                           radial_pooled_px_no_tube=pooled_radial([c for c in ok if not c["physics"]["tube"]]),
                           radial_mean_px_range=[round(float(radial.min()), 4), round(float(radial.max()), 4)] if ok else None),
+        "track_correlation": _track_summary(ok),
         "variance_factor": {"median": round(float(np.median([c["variance_factor"] for c in ok])), 2),
                             "range": [round(min(c["variance_factor"] for c in ok), 2),
                                       round(max(c["variance_factor"] for c in ok), 2)]} if ok else None,
@@ -119,6 +140,9 @@ def main():
     ap.add_argument("--summarise", metavar="CASES_JSONL", help="only summarise the cases of an earlier run")
     ap.add_argument("--keep", help="work in this directory and keep the recordings, truth and results "
                                    "(with --summarise: evaluate the results kept there again)")
+    ap.add_argument("--resolve", action="store_true",
+                    help="with --summarise and --keep: run the solver again on the kept recordings (the current "
+                         "code; same frames, so a before/after comparison of a solver change) before evaluating")
     a = ap.parse_args()
     if a.summarise:
         cases = [json.loads(line) for line in open(a.summarise) if line.strip()]
@@ -126,6 +150,11 @@ def main():
             work = pathlib.Path(a.keep)
             for c in cases:
                 out = work / "solved" / f"scan_{c['seed']}"
+                if a.resolve and (work / "recordings" / f"scan_{c['seed']}").exists():
+                    proc = ck.run_solver(work / "recordings" / f"scan_{c['seed']}", out)
+                    if proc.returncode != 0:
+                        c.update(outcome="no_result", message=f"exit {proc.returncode}: {proc.stderr[-500:]}")
+                        continue
                 if (out / "results.json").exists():
                     c.update(ck.evaluate(out, json.loads((work / "truth" / f"{c['seed']}.json").read_text())))
         print(json.dumps(dict(summarise(cases), n_views=a.views, cols=a.cols)))

@@ -238,6 +238,12 @@ def evaluate(out, truth):
                 noise_factors=[st["noise"]["factor_u"], st["noise"]["factor_v"]], n_obs=st["n_obs"],
                 chi2_instrument=float(err[:N_INSTRUMENT] @ np.linalg.solve(cov[:N_INSTRUMENT, :N_INSTRUMENT],
                                                                             err[:N_INSTRUMENT])))
+    nz = st["noise"]
+    if "track_lag_corr_u" in nz:                  # the correlation along sphere tracks (noise.py), diagnostic
+        infl = nz.get("track_sd_inflation") or [1.0] * len(x)
+        case["track"] = {"lag1_u": (nz["track_lag_corr_u"] or [None])[0], "lag1_v": (nz["track_lag_corr_v"] or [None])[0],
+                         "lags_used_u": len(nz["track_corr_u"]), "lags_used_v": len(nz["track_corr_v"]),
+                         "sd_inflation_instrument": infl[:N_INSTRUMENT]}
     case["pixel"] = pixel_discrepancy(x, cov, w, c_file, perm, matched, truth)
     id_index = {int(i): k for k, i in enumerate(ids)}
     case["detection"] = detection_check(read_detections(out / "results.mcap"), truth, legit, id_index, w)

@@ -19,8 +19,23 @@ residuals, separately for columns (u) and rows (v):
   component, moment estimate: the scatter of the per-projection mean
   residuals beyond what the within-projection noise explains).
 
+* ``track_corr_u``, ``track_corr_v`` (when the sphere of each observation is
+  given: the static solve): correlation of one sphere's errors in
+  consecutive projections, lags 1, 2, ... in acquisition order (a shadow
+  crossing a holder's edge band keeps its bias for several views). Pooled
+  autocorrelation of the whitened within-projection deviations along every
+  sphere's track, net of what the calibrated centres' stated errors put
+  there (one offset per sphere, correlated at every lag: the centre term of
+  the static solve carries it); the run of significantly positive lags from
+  lag 1 (more than 2 standard errors) as measured, continued as AR(1)
+  beyond, shrunk if needed until a track's correlation matrix is positive
+  definite.
+  ``track_lag_corr_*`` report the raw estimates (diagnostic, lags 1, 2, ...
+  up to the first one not significant).
+
 The noise model is then Cov(r) = diag(f_a^2 sigma_q^2) + tau_a^2 1 1^T per
-projection and axis, and the parameters' covariance is the sandwich
+projection and axis, plus f_a^2 sigma_i sigma_j c_a(l) between observations
+of the same sphere l projections apart, and the parameters' covariance is the sandwich
 ``A^-1 (J^T W Cov(r) W J) A^-1`` (A = J^T W J) for the weights W the
 estimator used. With a single projection the shared part cannot be seen in
 the residuals (it is absorbed by the parameters): it must come from a
@@ -60,6 +75,18 @@ class NoiseModel:
         the same data), or "none".
     sigma_reported : bool
         Whether the detector's per-observation sigma was used.
+    track_lag_corr_u, track_lag_corr_v : tuple of float
+        Estimated correlation of a sphere's whitened within-projection residuals l projections
+        apart (acquisition order), pooled over spheres, for l = 1, 2, ... up to the first lag not
+        significantly positive (at most min(TRACK_MAX_LAG, V / 4)); () when not estimated.
+    track_lag_se_u, track_lag_se_v : tuple of float
+        Standard error of those estimates under no correlation (1 / sqrt(pairs), widened by the
+        scatter of the calibrated centres' errors when their share is taken out), per lag.
+    track_corr_u, track_corr_v : tuple of float
+        The correlations the covariance uses (lags 1..len), () when none is significant.
+    track_sd_inflation : tuple of float
+        Per parameter: standard uncertainty with the track correlation over that without it
+        (filled by the solver that forms the covariance; () when not formed).
     """
 
     factor_u: float
@@ -72,13 +99,25 @@ class NoiseModel:
     n_views: int
     view_sd_source: str
     sigma_reported: bool
+    track_lag_corr_u: tuple = ()
+    track_lag_corr_v: tuple = ()
+    track_lag_se_u: tuple = ()
+    track_lag_se_v: tuple = ()
+    track_corr_u: tuple = ()
+    track_corr_v: tuple = ()
+    track_sd_inflation: tuple = ()
 
     @property
     def view_sd_px(self) -> tuple:
         return (self.view_sd_u_px, self.view_sd_v_px)
 
+    @property
+    def track_corr(self) -> tuple:
+        return (self.track_corr_u, self.track_corr_v)
+
     def to_dict(self) -> dict:
-        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+        return {k: (list(v) if isinstance(v, tuple) else v)
+                for k, v in ((k, getattr(self, k)) for k in self.__dataclass_fields__)}
 
 
 def _view_ids(view_index):
@@ -95,7 +134,95 @@ def _view_ids(view_index):
     return inv, int(inv.max()) + 1
 
 
-def estimate_noise(residuals, sigma, view_index, n_params: int, view_sd_px=None) -> NoiseModel:
+#: most lags of the track correlation estimated (and a quarter of the projections at most)
+TRACK_MAX_LAG = 24
+
+
+def _track_table(sphere_index, vid, n_v: int):
+    """(spheres, projections) table of observation indices, -1 where a sphere was not observed."""
+    sph = np.asarray(sphere_index, dtype=np.int64)
+    table = np.full((int(sph.max()) + 1 if sph.size else 0, n_v), -1, dtype=np.int64)
+    table[sph, vid] = np.arange(sph.size)
+    return table
+
+
+def track_pairs(sphere_index, view_index, lag: int):
+    """Observation pairs (i, j) of the same sphere ``lag`` projections apart in acquisition order.
+
+    The order is that of the projections present (their view indices sorted), so a projection
+    missing from the data does not count; a sphere missing from a projection (overlap, out of view)
+    leaves the pairs that would involve it out.
+    """
+    vid, n_v = _view_ids(np.asarray(view_index))
+    if lag <= 0 or lag >= n_v:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    table = _track_table(sphere_index, vid, n_v)
+    a, b = table[:, :-lag].ravel(), table[:, lag:].ravel()
+    keep = (a >= 0) & (b >= 0)
+    return a[keep], b[keep]
+
+
+def _track_correlation(z, table, known=None):
+    """Lag correlations of whitened deviations z along sphere tracks: (raw, se, used), each a tuple.
+
+    ``table``: :func:`_track_table`; ``known``: (offset columns (3, Q), stated variance (Q,)) of
+    the calibrated centres, whose expected share is taken out. raw: the pooled estimates at lags
+    1, 2, ... up to the first one not significantly positive (at most L = min(TRACK_MAX_LAG, V / 4));
+    se: their standard errors with no correlation (1 / sqrt(pairs), widened by the scatter of the
+    centres' actual errors about their stated variance); used: the model the covariance takes: the run of
+    significantly positive estimates from lag 1 (> 2 se) as measured, continued to lag L as AR(1)
+    (each lag the previous times the run's last ratio, or times the lag-1 value for a run of one),
+    shrunk if needed until the correlation matrix of a track is positive definite; () when lag 1 is
+    not significant.
+    """
+    n_v = table.shape[1]
+    max_lag = min(TRACK_MAX_LAG, n_v // 4)
+    seen = table >= 0
+    at = np.maximum(table, 0)
+    zt = np.where(seen, np.asarray(z)[at], 0.0)
+    zt2 = zt * zt
+    if known is not None:                        # (zc (3, Q), var (Q,)): sd-weighted offset columns
+        kt = np.where(seen, (known[0] * np.sqrt(known[1]))[:, at], 0.0)     # (3, spheres, views)
+    raw, se = [], []
+    for lag in range(1, max_lag + 1):
+        n_pairs = int(np.count_nonzero(seen[:, :-lag] & seen[:, lag:]))
+        if n_pairs < 20:
+            break
+        # sums of squares over the pairs only (a term whose partner is missing is zero in the product)
+        den = np.sqrt(float(np.sum(zt2[:, :-lag] * seen[:, lag:])) * float(np.sum(zt2[:, lag:] * seen[:, :-lag])))
+        num = float(np.sum(zt[:, :-lag] * zt[:, lag:]))
+        var_known = 0.0
+        if known is not None:
+            # less the part the stated centre errors put in on average; their actual draw scatters
+            # about it (Gaussian quadratic form: variance 2 sum_s |M_s|_F^2, M_s the sphere's
+            # symmetrised lag product of its offset columns), which widens the standard error
+            m = np.einsum("asv,bsv->sab", kt[:, :, :-lag], kt[:, :, lag:])
+            num -= float(np.trace(m, axis1=1, axis2=2).sum())
+            var_known = 2.0 * float(np.sum((0.5 * (m + m.transpose(0, 2, 1))) ** 2))
+        raw.append(num / den if den > 0 else 0.0)
+        se.append(np.sqrt(1.0 / n_pairs + (var_known / den ** 2 if den > 0 else 0.0)))
+        if raw[-1] <= 2.0 * se[-1]:
+            break                                 # the first lag not significantly positive ends the run
+    run = len(raw) - 1 if raw and raw[-1] <= 2.0 * se[-1] else len(raw)
+    if run == 0:
+        return tuple(raw), tuple(se), ()
+    used = list(raw[:run])
+    ratio = min(used[-1] / used[-2] if run >= 2 else used[0], 0.9)
+    while len(used) < max_lag and used[-1] * ratio > 1e-3:
+        used.append(used[-1] * ratio)
+    used = np.array(used)
+    # a track's correlation matrix (Toeplitz) is positive definite at every length when the spectral
+    # density 1 + 2 sum_l c_l cos(l w) is positive: shrink until it is (> 0.05) on a fine grid
+    cosines = np.cos(np.outer(np.linspace(0.0, np.pi, 513), np.arange(1, used.size + 1)))
+    for _ in range(30):
+        if 1.0 + 2.0 * float((cosines @ used).min()) > 0.05:
+            break
+        used = used * 0.9
+    return tuple(raw), tuple(se), tuple(float(c) for c in used)
+
+
+def estimate_noise(residuals, sigma, view_index, n_params: int, view_sd_px=None,
+                   sphere_index=None, centre_jac=None, centre_var=None) -> NoiseModel:
     """Noise model from the residuals of a weighted least-squares fit.
 
     Parameters
@@ -111,6 +238,17 @@ def estimate_noise(residuals, sigma, view_index, n_params: int, view_sd_px=None)
     view_sd_px : (float, float), optional
         Shared per-projection shift sd (u, v) [px] known from elsewhere; used
         instead of an estimate (needed with a single projection).
+    sphere_index : ndarray of shape (Q,), optional
+        Sphere of each observation: with it (and at least 8 projections) the correlation of
+        a sphere's errors in consecutive projections is estimated (``track_corr_*``).
+    centre_jac : ndarray of shape (3, 2Q), optional
+        The residuals' derivatives with respect to the object position (x_P, y_P, z_P), i.e. to an
+        offset of each observation's own sphere centre.
+    centre_var : ndarray of shape (N,), optional
+        Stated variance of each calibrated centre coordinate [m^2]. With ``centre_jac``, the
+        track correlation is estimated net of what these errors put into the residuals (the same
+        offset in every view of a sphere, correlated at every lag; the centre-uncertainty term
+        carries it, so it is not counted twice).
     """
     r = np.asarray(residuals, dtype=float)
     q = r.size // 2
@@ -118,7 +256,7 @@ def estimate_noise(residuals, sigma, view_index, n_params: int, view_sd_px=None)
     vid, n_v = _view_ids(np.asarray(view_index))
     dof_total = max(2 * q - n_params, 1)
     chi2 = float(np.sum((r / sig) ** 2)) / dof_total
-    factors, taus = [], []
+    factors, taus, lag_raw, lag_used, lag_se, table = [], [], [], [], [], None
     for a in range(2):
         ra, sa = r[a * q:(a + 1) * q], sig[a * q:(a + 1) * q]
         w = 1.0 / sa ** 2
@@ -130,6 +268,21 @@ def estimate_noise(residuals, sigma, view_index, n_params: int, view_sd_px=None)
         dof_w = max(q - n_v - 0.5 * n_params, 1.0)
         f2 = float(np.sum(w * dev * dev)) / dof_w if n_v < q else float(np.sum(w * ra * ra)) / max(q - 0.5 * n_params, 1)
         factors.append(np.sqrt(max(f2, 0.0)))
+        if sphere_index is not None and n_v >= 8 and f2 > 0:
+            if table is None:
+                table = _track_table(sphere_index, vid, n_v)
+            known = None
+            if centre_jac is not None and centre_var is not None:
+                # what the calibrated centres' stated errors put into each track (per sphere, the
+                # same offset in every view: correlated at every lag), whitened like the residuals
+                zc = np.asarray(centre_jac, dtype=float)[:, a * q:(a + 1) * q] / sa
+                known = (zc, np.asarray(centre_var, dtype=float)[np.asarray(sphere_index)])
+            raw, se, used = _track_correlation(dev / sa, table, known)
+        else:
+            raw, se, used = (), (), ()
+        lag_se.append(se)
+        lag_raw.append(raw)
+        lag_used.append(used)
         if view_sd_px is not None:
             taus.append(float(view_sd_px[a]))
         elif n_v >= 5:
@@ -149,7 +302,10 @@ def estimate_noise(residuals, sigma, view_index, n_params: int, view_sd_px=None)
     source = "given" if view_sd_px is not None else ("estimated" if n_v >= 5 else "none")
     return NoiseModel(factor_u=factors[0], factor_v=factors[1], view_sd_u_px=taus[0], view_sd_v_px=taus[1],
                       chi2_dof=chi2, within_view_correlation_u=rho[0], within_view_correlation_v=rho[1],
-                      n_views=n_v, view_sd_source=source, sigma_reported=sigma is not None)
+                      n_views=n_v, view_sd_source=source, sigma_reported=sigma is not None,
+                      track_lag_corr_u=lag_raw[0], track_lag_corr_v=lag_raw[1],
+                      track_lag_se_u=lag_se[0], track_lag_se_v=lag_se[1],
+                      track_corr_u=lag_used[0], track_corr_v=lag_used[1])
 
 
 def axis_weights_sigma(sigma, q: int, noise: NoiseModel):
@@ -169,7 +325,7 @@ def axis_normals(jac_t, sigma_w):
 
 
 def sandwich_covariance(jac_t, sigma_w, sigma_noise, view_index, noise: NoiseModel, normal_inverse,
-                        normals=None):
+                        normals=None, sphere_index=None):
     """Covariance of a weighted least-squares estimate under the noise model.
 
     Parameters
@@ -188,6 +344,9 @@ def sandwich_covariance(jac_t, sigma_w, sigma_noise, view_index, noise: NoiseMod
         (J^T W J)^-1.
     normals : [A_u, A_v], optional
         :func:`axis_normals` of the same Jacobian and weights, when already formed.
+    sphere_index : ndarray of shape (Q,), optional
+        Sphere of each observation: needed for the noise model's track correlation (ignored
+        without it).
 
     Returns
     -------
@@ -213,6 +372,18 @@ def sandwich_covariance(jac_t, sigma_w, sigma_noise, view_index, noise: NoiseMod
         block = k[:, a * q:(a + 1) * q] / sw[a * q:(a + 1) * q] ** 2
         s = np.stack([np.bincount(vid, row, n_v) for row in block])      # (n, V) per-view sums
         meat += tau * tau * (s @ s.T)
+    if sphere_index is not None and any(noise.track_corr):
+        table = _track_table(sphere_index, vid, n_v)
+        for a, corr in enumerate(noise.track_corr):
+            if not corr:
+                continue
+            sl = slice(a * q, (a + 1) * q)
+            g = k[:, sl] * (sn[sl] / sw[sl] ** 2)        # J^T W times the noise sd, per observation
+            for lag, c in enumerate(corr, start=1):
+                i, j = table[:, :-lag].ravel(), table[:, lag:].ravel()
+                keep = (i >= 0) & (j >= 0)
+                cross = g[:, i[keep]] @ g[:, j[keep]].T
+                meat += c * (cross + cross.T)
     return normal_inverse @ meat @ normal_inverse
 
 

@@ -16,7 +16,7 @@ Entry point: :func:`solve_static`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -338,7 +338,8 @@ def static_uncertainty(x, kern: StaticKernel, obs: CentreObservations, sigma, n_
                        centre_uncertainty_m=None, cond_limit: float = 1e10, weights=None, evaluated=None):
     """Uncertainty of a static estimate from the data it rests on (the same numbers whoever asks).
 
-    At ``x``: the noise model from the residuals (noise.py), weights = the reported sigma
+    At ``x``: the noise model from the residuals (noise.py; with the correlation of each sphere's
+    errors along its track), weights = the reported sigma
     rescaled per axis (or the ``weights`` the estimator used: a robust fit's final IRLS
     weights, or the reported sigma's when no per-axis refit was needed), the sandwich
     covariance of the observation noise, and, with ``centre_uncertainty_m``, the sensitivity to
@@ -357,12 +358,22 @@ def static_uncertainty(x, kern: StaticKernel, obs: CentreObservations, sigma, n_
     else:
         r, jt = evaluated[0], np.asarray(evaluated[1]).T
     q = obs.n_obs
-    noise = estimate_noise(r, sigma, obs.view_index, kern.n)
+    u_c = None if centre_uncertainty_m is None else np.broadcast_to(np.asarray(centre_uncertainty_m, dtype=float),
+                                                                    (n_spheres,))
+    noise = estimate_noise(r, sigma, obs.view_index, kern.n, sphere_index=obs.sphere_index, centre_jac=jt[7:10],
+                           centre_var=None if u_c is None else u_c ** 2)
     w = 1.0 / axis_weights_sigma(sigma, q, noise) if weights is None else np.asarray(weights, dtype=float)
     normals = axis_normals(jt, 1.0 / w)
     cov = covariance_from_jacobian(jt.T, r, w, cond_limit=cond_limit, normal=normals[0] + normals[1])
     cov_noise = sandwich_covariance(jt, 1.0 / w, axis_weights_sigma(sigma, q, noise), obs.view_index, noise,
-                                    cov.normal_inverse, normals=normals)
+                                    cov.normal_inverse, normals=normals, sphere_index=obs.sphere_index)
+    if noise.track_corr_u or noise.track_corr_v:
+        # diagnostic: how much the correlation along the sphere tracks widens each uncertainty
+        without = sandwich_covariance(jt, 1.0 / w, axis_weights_sigma(sigma, q, noise), obs.view_index, noise,
+                                      cov.normal_inverse, normals=normals)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            infl = np.sqrt(np.diag(cov_noise) / np.diag(without))
+        noise = replace(noise, track_sd_inflation=tuple(float(v) for v in infl))
     if centre_uncertainty_m is None:
         return cov, noise, cov_noise, None, cov_noise
     u_c = np.broadcast_to(np.asarray(centre_uncertainty_m, dtype=float), (n_spheres,))
@@ -374,8 +385,6 @@ def static_uncertainty(x, kern: StaticKernel, obs: CentreObservations, sigma, n_
 
 #: hypotheses tried when a fit fails: (description, what to check, transform of (obs, detector))
 def _orientation_variants(obs: CentreObservations, detector: DetectorSpec):
-    from dataclasses import replace  # noqa: PLC0415
-
     uv = obs.uv_px
     yield ("the image columns mirrored", "check the image orientation (column direction, +X)",
            replace(obs, uv_px=np.column_stack([detector.cols - 1 - uv[:, 0], uv[:, 1]])))
