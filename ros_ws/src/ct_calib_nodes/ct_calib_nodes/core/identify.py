@@ -14,7 +14,7 @@ centred) and searches its pose:
 1. coarse, for an object whose centres lie on one cylinder about its Y axis
    (helix49): a lean vote (``_lean_starts``). For each trial lean of the
    object's axis (grid of ``lean_step_deg`` = 1 deg up to
-   ``lean_search_deg`` = 12 deg from the rotation axis, both orientations),
+   ``lean_search_deg`` = 15 deg from the rotation axis, both orientations),
    each detection's ray (nominal instrument, undone by the table rotation)
    meets the cylinder at two points, each an (axial height, azimuth) on the
    object; the right lean puts them onto the calibrated (h_i, phi_i) moved by
@@ -179,6 +179,10 @@ class IdentifySettings:
     lean_search_deg : float
         Lean search (objects whose centres lie on a cylinder about their Y axis, as helix49): leans of the
         object's axis up to this angle from the rotation axis are searched [deg]; 0 switches it off.
+    lean_accept_deg : float
+        A pose found leaning more than this (or than ``lean_search_deg`` less one step) is refused [deg]:
+        measured with the independent renderer's instruments, none was labelled wrong up to 11.7 deg, one
+        at 13.9 deg was (fitted at 0.12 px, with the search at 12 and at 15 deg; ct_detect.md).
     lean_step_deg : float
         Grid step of the lean search [deg].
     lean_starts : int
@@ -206,7 +210,8 @@ class IdentifySettings:
     follow_pose: bool = True
     follow_min_step_deg: float = 10.0
     follow_frames: int = 12
-    lean_search_deg: float = 12.0
+    lean_search_deg: float = 15.0
+    lean_accept_deg: float = 12.0
     lean_step_deg: float = 1.0
     lean_starts: int = 12
     cylinder_tolerance_m: float = 5e-4
@@ -572,6 +577,16 @@ class SphereIdentifier:
                       f"labellings shifted along it differ only at its end spheres, and these frames do not show "
                       f"the ends clearly enough to tell them apart; use frames where the end spheres are clear "
                       f"of their neighbours")
+        lean_refused = False
+        if lean and fits and not refuse:
+            # a pose leaning more than lean_accept_deg: not trusted (measured: an instrument leaning 13.9 deg was
+            # labelled wrong, fitted at 0.12 px, with the search at 12 and at 15 deg; none wrong up to 11.7 deg)
+            tilt = float(np.degrees(np.arccos(min(1.0, abs(object_rotation(*w[10:13])[1, 1])))))
+            if tilt > min(self.settings.lean_accept_deg, self.settings.lean_search_deg - self.settings.lean_step_deg):
+                refuse = (f"the object leans {tilt:.1f} deg from the rotation axis, more than the identity search "
+                          f"accepts ({self.settings.lean_accept_deg:g} deg, IdentifySettings.lean_accept_deg): "
+                          f"set the object upright")
+                lean_refused = True
         ok = fits and margin >= self.settings.min_margin and not refuse
         msg = (f"{n_match} of {n_det} detections matched, rms {rms:.3f} px, {bad} unexplained"
                + (f" (next pose hypothesis: {bad + margin})" if np.isfinite(margin) else ""))
@@ -582,7 +597,7 @@ class SphereIdentifier:
         else:
             msg = "pose search failed: " + msg + (f"; {refuse}" if refuse else "")
             self._w = None
-            if diagnose and not screw_refused:       # the pose fits; only the labelling is open
+            if diagnose and not screw_refused and not lean_refused:    # the pose fits; only the labelling is open
                 msg += "; " + self._diagnose(frames, alphas, srd_m)
         return InitialisationResult(w, res, rms, n_match, n_det, 0.5 * float(np.sum(res ** 2)), ok, msg, nfev)
 
