@@ -24,6 +24,7 @@ centred) and searches its pose:
    apart from rho_Y and height). The 12 best distinct leans are fitted on the
    detections their peak labels (robust least squares), scored with the
    truncated nearest-neighbour cost below, and the ``n_starts`` best go on.
+   A winning pose leaning more than ``lean_accept_deg`` (12 deg) is refused.
    Before (round 19) the object was held upright here and a lean beyond ~2 deg
    was refused on most instruments (ct_detect.md, "Independent renderer
    check", failure 3). Other objects: rho_Y over 360 deg in 2-deg steps,
