@@ -94,7 +94,7 @@ def test_grid_clean_adequate_and_command_output(tmp_path, grid_session):
 
 
 @pytest.mark.slow
-def test_hidden_lens_distortion_named_and_measured(grid_session):
+def test_hidden_lens_distortion_named_and_measured(grid_session, grid_clean):
     # the same rendering; CameraInfo with D = 0 hides a k1 ~ -0.3 lens
     truth, rec = grid_session
     rec = __import__("copy").copy(rec)
@@ -110,7 +110,58 @@ def test_hidden_lens_distortion_named_and_measured(grid_session):
     # magnitude within 15 %; each camera's k1 within 4 u of the truth (with the floor's scale)
     assert abs(f0["magnitude"] - np.sqrt(np.mean(k1_true ** 2))) < 0.15 * np.sqrt(np.mean(k1_true ** 2))
     assert np.all(np.abs(est - k1_true) < 4 * u + 0.05 * np.abs(k1_true))
-    assert out["fit_after"]["held_out_rms"] < 0.75 * out["fit_before"]["held_out_rms"]
+    # the k1 term moves the detector's fitted silhouette cone, so the held-out rms comes down to the clean
+    # control's (same rendering, true CameraInfo). Over seeds 1000-1049 of the validation benchmark the
+    # ratio was 1.141 +- 0.072 (1.01-1.40; <= 1.25, the bound, on 47 of 50); the bound here is the
+    # mean + 3 sd of that seed-to-seed spread (before the silhouette basis: 4.47, 3.2-6.5)
+    _res, _info, clean = grid_clean
+    ratio = out["fit_after"]["held_out_rms"] / clean["fit_before"]["held_out_rms"]
+    assert ratio <= 1.141 + 3 * 0.072, (ratio, out["fit_after"], clean["fit_before"])
+
+
+def test_k1_basis_moves_the_fitted_silhouette_cone():
+    # exact physics, no renderer: the silhouette of a 12.7 mm sphere 170-190 mm away, a nest sector of
+    # 60-100 deg missing, every edge point bent by a lens k1 that CameraInfo (D = 0) leaves out, and the
+    # detector's own cone fit. The k1 basis (shift of the cone fitted to the edge points) must predict the
+    # fitted centre's shift: as a tangent (k1 -> 0) to its second-order remainder (~1 % of the shift), as
+    # the secant at the lens's k1 exactly; the centre point's own shift k1 r^2 n, which ignores the disc's
+    # size, is off by a third of the shift or more
+    from picms_nodes.core.detect import fit_cone
+    f, W, H = 8182.0, 2592, 1944
+    K = np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1.0]])
+    info = Intrinsics(K, np.zeros(5), W, H)
+    rng = np.random.default_rng(7)
+    worst_tangent, worst_secant, worst_old = 0.0, 0.0, np.inf
+    for k1 in (-0.3, -0.1, 0.1, 0.3):
+        for _ in range(4):
+            pc = np.array([rng.uniform(-0.012, 0.012), rng.uniform(-0.012, 0.012), rng.uniform(0.17, 0.19)])
+            a = pc / np.linalg.norm(pc)
+            alpha = np.arcsin(0.00635 / np.linalg.norm(pc))
+            e1 = np.cross(a, [0.0, 1.0, 0.0])
+            e1 /= np.linalg.norm(e1)
+            e2 = np.cross(a, e1)
+            phi = np.deg2rad(np.arange(0.0, 360.0, 2.0))
+            gap, half = rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(30, 50))
+            phi = phi[np.abs((phi - gap + np.pi) % (2 * np.pi) - np.pi) > half]
+            rays = np.cos(alpha) * a + np.sin(alpha) * (np.outer(np.cos(phi), e1) + np.outer(np.sin(phi), e2))
+            x = rays[:, :2] / rays[:, 2:3]
+            xo = x * (1 + k1 * (x * x).sum(1, keepdims=True))          # what the lens does
+            ro = np.column_stack([xo, np.ones(len(xo))])
+            ro /= np.linalg.norm(ro, axis=1, keepdims=True)
+            n_true = pc[:2] / pc[2]
+            p, _, _ = fit_cone(ro, [n_true[0], n_true[1], alpha])       # what the detector reports
+            shift = (p[:2] - n_true) * f
+            px = xo * f + K[:2, 2]
+            tangent = f * pd._silhouette_shift(info, px, p[:2], 1e-4)
+            secant = f * pd._silhouette_shift(info, px, p[:2], k1)
+            old = f * n_true * (n_true @ n_true)
+            nrm = np.linalg.norm(shift) + 0.01           # px; a disc near the image centre hardly moves
+            worst_tangent = max(worst_tangent, np.linalg.norm(shift - k1 * tangent) / nrm)
+            worst_secant = max(worst_secant, np.linalg.norm(shift - k1 * secant))
+            worst_old = min(worst_old, np.linalg.norm(shift - k1 * old) / nrm)
+    assert worst_tangent < 0.03, worst_tangent
+    assert worst_secant < 1e-4, worst_secant          # px: the secant at the lens's k1 is the response
+    assert worst_old > 0.2, worst_old
 
 
 @pytest.fixture(scope="module")

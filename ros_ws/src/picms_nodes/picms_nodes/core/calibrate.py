@@ -440,12 +440,17 @@ def calibrate(stations: list[Station], camera_info: dict, cell: dict) -> Calibra
     # cameras
     obs = np.full((len(cams), N, 2), np.nan)
     obs_cov = np.tile(np.eye(2), (len(cams), N, 1, 1))
+    # one frame's silhouette edge points (raw px) per camera and station: the discrepancy engine's lens
+    # terms model how a distortion missing from CameraInfo moves the cone fitted to them (not just a point)
+    edges = [[None] * N for _ in cams]
     for j, c in enumerate(cams):
         for i, s in enumerate(good):
             dets = s.detections.get(c)
             if dets:
                 m, cv = _mean_detection(dets)
                 obs[j, i], obs_cov[j, i] = m, cv
+                e = getattr(dets[0], "edges_px", None)
+                edges[j][i] = None if e is None else np.asarray(e, float)
     for j, c in enumerate(cams):
         if np.isfinite(obs[j, :, 0]).sum() < 6:
             raise CalibrationError(f"{c}: disc seen at {int(np.isfinite(obs[j, :, 0]).sum())} settled stations; "
@@ -531,4 +536,4 @@ def calibrate(stations: list[Station], camera_info: dict, cell: dict) -> Calibra
                 # the tracker link, for the discrepancy engine: X* per station (tracker frame), the
                 # constellation's rotation since the reference, the encoder readings and station times
                 "X_T": X_T, "cov_X": cov_X, "W_T": W_T, "cov_W": cov_W, "q": q,
-                "t_ns": np.array([s.window.start_ns for s in good], np.int64)})
+                "t_ns": np.array([s.window.start_ns for s in good], np.int64), "edges_px": edges})

@@ -30,6 +30,8 @@ from ct_calib_nodes.core.discrepancy import (BIC_THRESHOLD, Candidate, Dataset, 
                                              unexplained_entries, verdict_sentence)
 
 from .calibrate import CalibrationResult, _skew, travel_matrix
+from .camera import Intrinsics
+from .detect import fit_cone
 
 
 @dataclass(frozen=True)
@@ -55,9 +57,34 @@ class PicmsTerm:
 
 
 def _b_k1(c, j):
+    # k1 bends every silhouette edge point, not only the disc's centre: the basis is the shift of the cone
+    # the detector fits to the edge points (_silhouette_shift). Without edge points in
+    # the design: the centre point's own shift k1 r^2 n (which misses the disc's size, ~3 rho^2 n)
+    if c["k1_edge"][j] is not None:
+        return c["k1_edge"][j]
     x, y = c["n"][j].T
     r2 = x * x + y * y
     return c["f"][j] * np.stack([x * r2, y * r2], 1)[:, :, None]
+
+
+def _silhouette_shift(intr, edges_px, n0, k1):
+    """(2,) shift of the detector's cone axis (normalised coordinates) per unit k1, for a radial k1 missing
+    from CameraInfo: the cone fitted to the silhouette edge points edges_px (raw px) undistorted with
+    CameraInfo (what the detector reported), minus the cone fitted to the same points undistorted with
+    CameraInfo's D plus k1 (what it would have reported had CameraInfo carried the lens), over k1: the
+    secant of the detector's response at k1 (the tangent as k1 -> 0). The nest's missing sector and the
+    disc's size enter through the edge points themselves (a full outline of angular radius rho moves by
+    ~k1 (r^2 + 3 rho^2) n, the centre point alone by k1 r^2 n)."""
+    def axis(xx):
+        r = np.column_stack([xx, np.ones(len(xx))])
+        r /= np.linalg.norm(r, axis=1, keepdims=True)
+        a0 = np.array([n0[0], n0[1], 1.0]) / np.hypot(np.hypot(n0[0], n0[1]), 1.0)
+        p, _cov, _res = fit_cone(r, [n0[0], n0[1], float(np.mean(np.arccos(np.clip(r @ a0, -1, 1))))])
+        return p[:2]
+    D = np.asarray(intr.D, float).copy()
+    D[0] += k1
+    with_k1 = Intrinsics(intr.K, D, intr.width, intr.height)
+    return (axis(intr.undistort(edges_px)) - axis(with_k1.undistort(edges_px))) / k1
 
 
 def _b_k2(c, j):
@@ -300,7 +327,8 @@ COMPONENTS = ("u", "v", "tracker_x", "tracker_y", "tracker_z", "rotation_x", "ro
 def _camera_block(result, camera_info, U, obs, cov, cams, dA, tnorm, n_pose, p_nom):
     """Rows, Jacobian and context of the disc-centre residuals (px)."""
     rows = {"r": [], "J": [], "sig": [], "comp": [], "st": [], "cam": []}
-    ctx = {k: [] for k in ("jdist", "n", "f", "t", "jrot", "jpos", "ju", "ok", "idx")}
+    ctx = {k: [] for k in ("jdist", "n", "f", "t", "jrot", "jpos", "ju", "ok", "idx", "k1_edge")}
+    edges = result.design.get("edges_px")
     row = 0
     for j, c in enumerate(cams):
         cr = result.cameras[c]
@@ -331,7 +359,15 @@ def _camera_block(result, camera_info, U, obs, cov, cams, dA, tnorm, n_pose, p_n
                 rows["st"].append(i)
                 rows["cam"].append(j)
         ctx["n"].append(n)
-        ctx["jdist"].append(_distort_jacobian(np.asarray(camera_info[c].D, float), n))
+        D = np.asarray(camera_info[c].D, float)
+        ctx["jdist"].append(_distort_jacobian(D, n))
+        if edges is not None and all(edges[j][i] is not None and len(edges[j][i]) >= 10 for i in ok):
+            # the tangent (k1 -> 0): the secant at k1 ~ -0.3 differs by ~1 % of the shift, nearly all of it
+            # along the shift (absorbed by the fitted k1; measured in the doc)
+            ctx["k1_edge"].append(f * np.array([_silhouette_shift(camera_info[c], edges[j][i], obs[j, i], 1e-4)
+                                                for i in ok])[:, :, None])
+        else:
+            ctx["k1_edge"].append(None)
         ctx["f"].append(f)
         ctx["t"].append(tnorm[ok])
         ctx["jrot"].append(jr)
