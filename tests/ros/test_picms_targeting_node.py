@@ -59,7 +59,9 @@ def test_drive_probe_action_feature_and_direct_modes(start_node, ros_node, tmp_p
                       "-p", "scene:=chrome_targets", "-p", f"part_position:=[{pos}]")
     start_node("picms_nodes", "picms_tracker_sim", "--ros-args", "-p", f"cell_seed:={SEED}",
                "-p", "smr_star_present:=false")
-    tgt = start_node("picms_nodes", "picms_targeting", "--ros-args", "-p", f"calibration_file:={cal}")
+    tgt = start_node("picms_nodes", "picms_targeting", "--ros-args", "-p", f"calibration_file:={cal}",
+                     # 5 MP renders on a loaded CI machine: "CameraInfo missing within 20 s" happened (round 21)
+                     "-p", "frame_timeout_s:=60.0", "-p", "ready_timeout_s:=60.0")
     client = GoalClient(ros_node, DriveProbe, "/picms/drive_probe")   # survives a lost goal response
     assert client.wait_for_server(timeout=40), tgt.log()
 
