@@ -358,27 +358,28 @@ def static_uncertainty(x, kern: StaticKernel, obs: CentreObservations, sigma, n_
     else:
         r, jt = evaluated[0], np.asarray(evaluated[1]).T
     q = obs.n_obs
-    u_c = None if centre_uncertainty_m is None else np.broadcast_to(np.asarray(centre_uncertainty_m, dtype=float),
-                                                                    (n_spheres,))
+    u_c = None
+    if centre_uncertainty_m is not None:
+        u_c = np.broadcast_to(np.asarray(centre_uncertainty_m, dtype=float), (n_spheres,))
+        if not np.all(np.isfinite(u_c)) or np.any(u_c < 0):
+            raise ValueError(f"centre_uncertainty_m must be >= 0, scalar or shape ({n_spheres},)")
     noise = estimate_noise(r, sigma, obs.view_index, kern.n, sphere_index=obs.sphere_index, centre_jac=jt[7:10],
                            centre_var=None if u_c is None else u_c ** 2)
-    w = 1.0 / axis_weights_sigma(sigma, q, noise) if weights is None else np.asarray(weights, dtype=float)
+    sig_model = axis_weights_sigma(sigma, q, noise)
+    w = 1.0 / sig_model if weights is None else np.asarray(weights, dtype=float)
     normals = axis_normals(jt, 1.0 / w)
     cov = covariance_from_jacobian(jt.T, r, w, cond_limit=cond_limit, normal=normals[0] + normals[1])
-    cov_noise = sandwich_covariance(jt, 1.0 / w, axis_weights_sigma(sigma, q, noise), obs.view_index, noise,
+    cov_noise = sandwich_covariance(jt, 1.0 / w, sig_model, obs.view_index, noise,
                                     cov.normal_inverse, normals=normals, sphere_index=obs.sphere_index)
     if noise.track_corr_u or noise.track_corr_v:
         # diagnostic: how much the correlation along the sphere tracks widens each uncertainty
-        without = sandwich_covariance(jt, 1.0 / w, axis_weights_sigma(sigma, q, noise), obs.view_index, noise,
+        without = sandwich_covariance(jt, 1.0 / w, sig_model, obs.view_index, noise,
                                       cov.normal_inverse, normals=normals)
         with np.errstate(invalid="ignore", divide="ignore"):
             infl = np.sqrt(np.diag(cov_noise) / np.diag(without))
         noise = replace(noise, track_sd_inflation=tuple(float(v) for v in infl))
-    if centre_uncertainty_m is None:
+    if u_c is None:
         return cov, noise, cov_noise, None, cov_noise
-    u_c = np.broadcast_to(np.asarray(centre_uncertainty_m, dtype=float), (n_spheres,))
-    if u_c.shape != (n_spheres,) or not np.all(np.isfinite(u_c)) or np.any(u_c < 0):
-        raise ValueError(f"centre_uncertainty_m must be >= 0, scalar or shape ({n_spheres},)")
     sens = _centre_sensitivity(jt.T, w, x, obs, cov.normal_inverse, n_spheres)
     return cov, noise, cov_noise, sens, cov_noise + (sens * np.repeat(u_c ** 2, 3)) @ sens.T
 
