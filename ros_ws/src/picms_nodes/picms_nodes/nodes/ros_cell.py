@@ -14,6 +14,8 @@ Only the latest frame per camera is kept (5 MP frames).
 """
 from __future__ import annotations
 
+import bisect
+
 import threading
 import time
 
@@ -96,8 +98,8 @@ class RosCell:
         with self.lock:
             self.js_t.append(stamp_ns(m.header.stamp))
             self.js_q.append(q)
-            if len(self.js_t) > 20000:
-                del self.js_t[:10000], self.js_q[:10000]
+            if len(self.js_t) > 60000:     # >= 300 s kept at 100 Hz: longer than any settle + frame wait
+                del self.js_t[:30000], self.js_q[:30000]
 
     def _on_smr(self, name, m):
         try:
@@ -158,8 +160,12 @@ class RosCell:
         """(start_ns, end_ns, readings (N, 3)) of the still run ending at the latest reading, if it
         has lasted settle_hold; else None. Only readings stamped after `after_ns` count."""
         with self.lock:
-            t = np.array(self.js_t[-3000:], dtype=np.int64)
-            q = np.array(self.js_q[-3000:]).reshape(-1, 3)
+            # every reading since after_ns, however long the frames took (a fixed count of the
+            # latest readings covered 30 s at 100 Hz and lost the start of a run settled earlier)
+            i0 = bisect.bisect_right(self.js_t, after_ns)
+            i0 = max(0, i0 - 200)           # readings may arrive slightly out of stamp order
+            t = np.array(self.js_t[i0:], dtype=np.int64)
+            q = np.array(self.js_q[i0:]).reshape(-1, 3)
         keep = t > after_ns
         t, q = t[keep], q[keep]
         if t.size < 3:
