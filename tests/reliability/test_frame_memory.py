@@ -52,7 +52,8 @@ def test_idle_calibration_node_returns_frame_memory(start_node, ros_node, tmp_pa
         peaks.append(rss_mib(pid))
         # back within the limit once the node has taken the frames (a loaded machine takes longer);
         # before the fix the RSS stayed at the most frames ever held (~15 frames, +73 MiB)
-        ros_node.spin_until(lambda: rss_mib(pid) - base < limit, timeout=20.0)
+        # (20 s ran out once in a fresh-clone run with both test workers busy, round 22: 3 frames still held)
+        ros_node.spin_until(lambda: rss_mib(pid) - base < limit, timeout=60.0)
         after.append(settled(0.5))
     assert max(after) - base < limit, (base, peaks, after, node.log()[-2000:])
     assert "frame memory: " in node.log()

@@ -274,6 +274,26 @@ def _signal(part: PlanarPart, d_px, w_px, a=1.0, b=0.0):
     return cov
 
 
+_PART_CACHE: dict = {}
+
+
+def _part_signal_cached(intr: Intrinsics, pose: CameraPose, part: PlanarPart, physics: Physics, focus: float):
+    """_part_signal, remembered for the last few (camera, pose, part): a still stage gives the same noise-free
+    part image frame after frame (the encoders are quantised), so only the noise is drawn anew. The camera
+    simulator's frames then cost ~0.15 s instead of ~0.6-1 s each (three 5 MP cameras)."""
+    key = (id(intr), id(part), id(physics), float(focus), np.asarray(pose.R_stage_camera, np.float64).tobytes(),
+           np.asarray(pose.p_stage_centre, np.float64).tobytes())
+    hit = _PART_CACHE.get(key)
+    # the objects are kept with the entry, so their ids cannot be reused while it lives (all are frozen)
+    if hit is not None and hit[0][0] is intr and hit[0][1] is part and hit[0][2] is physics:
+        return hit[1]
+    v = _part_signal(intr, pose, part, physics, focus)
+    while len(_PART_CACHE) >= 6:                 # one per camera of a three-camera cell, and a margin
+        _PART_CACHE.pop(next(iter(_PART_CACHE)))
+    _PART_CACHE[key] = ((intr, part, physics), v)
+    return v
+
+
 def _part_signal(intr: Intrinsics, pose: CameraPose, part: PlanarPart, physics: Physics, focus: float):
     """(x0, y0, blurred signal (h, w) float32) of a planar part, or None when it is out of view."""
     o_c, A_c = _plane_geometry(pose, part)
@@ -364,7 +384,7 @@ def _render_with_part(pose, intr, physics, rng, part: PlanarPart, focus, cover):
     img *= sd
     img += clean_half
     boxes = []
-    ps = _part_signal(intr, pose, part, physics, focus)
+    ps = _part_signal_cached(intr, pose, part, physics, focus)
     if ps is not None:
         boxes.append((ps[0], ps[1], ps[0] + ps[2].shape[1], ps[1] + ps[2].shape[0]))
     boxes += [(x0, y0, x0 + cov.shape[1], y0 + cov.shape[0]) for x0, y0, cov, _ in cover]
