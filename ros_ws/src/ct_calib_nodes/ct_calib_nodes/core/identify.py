@@ -11,14 +11,33 @@ Method
 (source, axis at the reported SRD, detector perpendicular at the stated SDD,
 centred) and searches its pose:
 
-1. coarse: rho_Y over 360 deg in 2-deg steps, the object upright or upside
+1. coarse, for an object whose centres lie on one cylinder about its Y axis
+   (helix49): a lean vote (``_lean_starts``). For each trial lean of the
+   object's axis (grid of ``lean_step_deg`` = 1 deg up to
+   ``lean_search_deg`` = 15 deg from the rotation axis, both orientations),
+   each detection's ray (nominal instrument, undone by the table rotation)
+   meets the cylinder at two points, each an (axial height, azimuth) on the
+   object; the right lean puts them onto the calibrated (h_i, phi_i) moved by
+   one (height offset, spin), so every detection votes for (h - h_i,
+   phi - phi_i) over all spheres and the lean whose vote peaks highest wins
+   (labelling and spin need not be known to vote, so the lean is searched
+   apart from rho_Y and height). The 12 best distinct leans are fitted on the
+   detections their peak labels (robust least squares), scored with the
+   truncated nearest-neighbour cost below, and the ``n_starts`` best go on.
+   A winning pose leaning more than ``lean_accept_deg`` (12 deg) is refused.
+   The vote runs only when the initialisation frames span ``lean_min_arc_deg``
+   (1 deg) of rotation: one view does not observe the lean (a pose leaning
+   23 deg explained one frame of the upright object to 0.026 px).
+   Before (round 19) the object was held upright here and a lean beyond ~2 deg
+   was refused on most instruments (ct_detect.md, "Independent renderer
+   check", failure 3). Other objects: rho_Y over 360 deg in 2-deg steps,
+   the object upright or upside
    down (rho_X = 0 or pi, rho_Z = 0), its origin on the axis, a lateral offset and height
    that match the mean detected position, plus a height grid of +-4 mm in
    1 mm steps; each candidate is scored by a truncated nearest-neighbour cost
    over all initial frames (``sum min(d, gate)^2``), robust to missed and
-   spurious detections. The object is assumed not to lean: the fine stage
-   takes up ~2 deg, beyond that the search fails (refuses) on most
-   instruments (ct_detect.md, "Independent renderer check");
+   spurious detections; this grid does not search a lean (the fine stage
+   takes up ~2 deg);
 2. fine, from each of the 6 best distinct coarse poses: alternate gated,
    mutually unique nearest-neighbour matching and a least-squares fit of
    x_D, eta, x_P, y_P, z_P, rho_X, rho_Y, rho_Z (z_R, z_D, theta, phi stay
@@ -28,8 +47,9 @@ centred) and searches its pose:
    5e-10 m), and the relabelling i -> i + k fits every sphere but the k end
    spheres to a fraction of a pixel. The calibrated centres are checked for
    such shifts (k = +-1 .. +-3 in the file's order) when the identifier is
-   made; the best refined pose composed with each motion is refined and
-   scored too, so the coarse search need not have started every labelling;
+   made; the best refined pose (with the lean vote: of each orientation, as
+   the vote is blind to a screw shift) composed with each motion is refined
+   and scored too, so the coarse search need not have started every labelling;
 4. decision: the refined pose that leaves the fewest detections unmatched and
    the fewest predicted spheres undetected that the detector would have found
    (inside the detector, outline 6 px or more from every other shadow:
@@ -82,6 +102,8 @@ from .geometry import (
     forward_df,
     forward_srf,
     object_rotation,
+    rot_x,
+    rot_y,
     sphere_centres_df,
     static_to_detector_frame,
 )
@@ -93,6 +115,15 @@ ASSIGN_REASONS = ("ok", "unmatched", "ambiguous_identity", "not_initialised")
 
 # indices into the 13 static parameters (geometry.py order)
 _FREE = np.array([1, 6, 7, 8, 9, 10, 11, 12])   # x_D, eta, x_P, y_P, z_P, rho_X, rho_Y, rho_Z
+
+
+def _arc_deg(alphas) -> float:
+    """Rotary arc covered by the angles [deg]: 360 less the largest gap between neighbours on the circle."""
+    a = np.sort(np.mod(np.asarray(alphas, dtype=np.float64).reshape(-1), 2 * np.pi))
+    if a.size < 2:
+        return 0.0
+    gaps = np.diff(np.concatenate([a, a[:1] + 2 * np.pi]))
+    return float(np.degrees(2 * np.pi - gaps.max()))
 
 
 @dataclass(frozen=True)
@@ -158,6 +189,27 @@ class IdentifySettings:
         Smallest extra arc that triggers a refit [deg].
     follow_frames : int
         Frames (evenly spread over the arc covered) used by each refit.
+    lean_search_deg : float
+        Lean search (objects whose centres lie on a cylinder about their Y axis, as helix49): leans of the
+        object's axis up to this angle from the rotation axis are searched [deg]; 0 switches it off.
+    lean_accept_deg : float
+        A pose found leaning more than this (or than ``lean_search_deg`` less one step) is refused [deg]:
+        measured with the independent renderer's instruments, none was labelled wrong up to 11.7 deg, one
+        at 13.9 deg was (fitted at 0.12 px, with the search at 12 and at 15 deg; ct_detect.md).
+    lean_step_deg : float
+        Grid step of the lean search [deg].
+    lean_starts : int
+        Distinct lean hypotheses (the best of the vote) fitted on the detections their vote labels; the
+        ``n_starts`` best fits are refined and compared.
+    cylinder_tolerance_m : float
+        The lean search runs only when every calibrated centre lies this close to the cylinder about the
+        object's Y axis through its mean [m].
+    lean_min_arc_deg : float
+        The lean search runs only when the initialisation frames span at least this rotary arc [deg]; with
+        less (one frame) the object is held upright as before round 21. One view does not observe the lean
+        (the upright object was refused as leaning 23 deg); from 2 frames 1 deg apart the vote did better
+        than the upright search (ideal detector, lean up to 5 deg, 12 instruments: 6 right / 0 wrong / 6
+        refused against 2 / 2 / 8; ct_detect.md).
     """
 
     gate_px: float | None = None
@@ -177,6 +229,12 @@ class IdentifySettings:
     follow_pose: bool = True
     follow_min_step_deg: float = 10.0
     follow_frames: int = 12
+    lean_search_deg: float = 15.0
+    lean_accept_deg: float = 12.0
+    lean_step_deg: float = 1.0
+    lean_starts: int = 12
+    cylinder_tolerance_m: float = 5e-4
+    lean_min_arc_deg: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -325,6 +383,7 @@ class SphereIdentifier:
         self.pose_refits = 0      # how many times the pose was refitted during the rotation
         self._df_cache = (None, None)   # (w bytes, its static_to_detector_frame) of _raw_predict
         self.screws = self._screw_symmetries()
+        self._cyl = self._cylinder()
 
     def _screw_symmetries(self):
         """[(k, R, t, rms)]: rigid motions with R c_i + t ~ c_(i+k) (file order) to screw_tolerance_m."""
@@ -335,6 +394,16 @@ class SphereIdentifier:
             if rms <= self.settings.screw_tolerance_m:
                 out += [(k, r, t, rms), (-k, r.T, -r.T @ t, rms)]
         return out
+
+    def _cylinder(self):
+        """(radius, heights, azimuths) when every calibrated centre lies on one cylinder about the object's
+        Y axis (to ``cylinder_tolerance_m``, helix49 to 1e-9 m); else None (no lean search)."""
+        c = self.centres_of_m
+        rad = np.hypot(c[:, 0], c[:, 2])
+        r = float(np.median(rad))
+        if len(c) < 6 or r <= 0 or np.max(np.abs(rad - r)) > self.settings.cylinder_tolerance_m:
+            return None
+        return r, c[:, 1].copy(), np.arctan2(c[:, 2], c[:, 0])
 
     def _shifted_pose(self, w, r, t):
         """Pose w composed with the object motion x -> r x + t: a sphere is then labelled as the one the
@@ -429,12 +498,20 @@ class SphereIdentifier:
         coarse_gate = self.settings.coarse_gate_px or 2.0 * r_nom
         allc = np.vstack(frames)
         mean_det = allc.mean(axis=0)
-        # coarse grid over rho_Y and object height; keep the best few distinct poses
+        # the lean vote needs frames at more than one rotary angle: one view of helix49 is explained to a few
+        # hundredths of a pixel by a pose leaning tens of degrees (measured: the upright default object refused
+        # as leaning 23 deg with one initialisation frame); else the upright grid as before round 21
+        lean = (self._cyl is not None and self.settings.lean_search_deg > 0
+                and _arc_deg(alphas) >= self.settings.lean_min_arc_deg)
+        # coarse grid over rho_Y and object height (the object upright on the axis); keep the best few distinct
+        # poses. With the lean search (centres on a cylinder, as helix49) the vote below replaces it.
         cands = []
         dy_grid = np.arange(-self.settings.height_search_m, self.settings.height_search_m + 1e-12,
                             self.settings.height_step_m)
         flips = (0.0, np.pi) if self.settings.upside_down else (0.0,)
         grid = [(f, r) for f in flips for r in np.deg2rad(np.arange(0.0, 360.0, self.settings.coarse_step_deg))]
+        if lean:
+            grid = []
         for flip, rho_y in grid:
             w0 = self._nominal_w(srd_m)
             w0[10] = flip
@@ -481,11 +558,21 @@ class SphereIdentifier:
 
         for w in starts:
             consider(w)
+        if lean:
+            x_d = -(mean_det[0] - self.detector.centre_px[0]) * pitch
+            y_p = (self.detector.centre_px[1] - mean_det[1]) * pitch / mag
+            for w in self._lean_starts(frames, alphas, srd_m, x_d, y_p):
+                consider(w)
         results.sort(key=lambda t: (t[0], t[1]))
-        # screw symmetry: the labellings shifted along the object, composed onto the best pose
-        best = results[0][2]
-        for k, r, t, _rms in self.screws:
-            consider(self._shifted_pose(best, r, t))
+        # screw symmetry: the labellings shifted along the object, composed onto the best pose (of each
+        # orientation when the lean vote made the starts: its peaks are blind to a screw shift, and the best
+        # upright labelling of helix49 can be a turned-over one)
+        bests = [results[0][2]]
+        if lean:
+            bests += [q[2] for q in results if _is_flipped(q[2]) != _is_flipped(bests[0])][:1]
+        for best in bests:
+            for k, r, t, _rms in self.screws:
+                consider(self._shifted_pose(best, r, t))
         results.sort(key=lambda t: (t[0], t[1]))
         margin = results[1][0] - results[0][0] if len(results) > 1 else np.inf
         note, refuse = "", ""
@@ -514,6 +601,16 @@ class SphereIdentifier:
                       f"labellings shifted along it differ only at its end spheres, and these frames do not show "
                       f"the ends clearly enough to tell them apart; use frames where the end spheres are clear "
                       f"of their neighbours")
+        lean_refused = False
+        if lean and fits and not refuse:
+            # a pose leaning more than lean_accept_deg: not trusted (measured: an instrument leaning 13.9 deg was
+            # labelled wrong, fitted at 0.12 px, with the search at 12 and at 15 deg; none wrong up to 11.7 deg)
+            tilt = float(np.degrees(np.arccos(min(1.0, abs(object_rotation(*w[10:13])[1, 1])))))
+            if tilt > min(self.settings.lean_accept_deg, self.settings.lean_search_deg - self.settings.lean_step_deg):
+                refuse = (f"the object leans {tilt:.1f} deg from the rotation axis, more than the identity search "
+                          f"accepts ({self.settings.lean_accept_deg:g} deg, IdentifySettings.lean_accept_deg): "
+                          f"set the object upright")
+                lean_refused = True
         ok = fits and margin >= self.settings.min_margin and not refuse
         msg = (f"{n_match} of {n_det} detections matched, rms {rms:.3f} px, {bad} unexplained"
                + (f" (next pose hypothesis: {bad + margin})" if np.isfinite(margin) else ""))
@@ -524,7 +621,7 @@ class SphereIdentifier:
         else:
             msg = "pose search failed: " + msg + (f"; {refuse}" if refuse else "")
             self._w = None
-            if diagnose and not screw_refused:       # the pose fits; only the labelling is open
+            if diagnose and not screw_refused and not lean_refused:    # the pose fits; only the labelling is open
                 msg += "; " + self._diagnose(frames, alphas, srd_m)
         return InitialisationResult(w, res, rms, n_match, n_det, 0.5 * float(np.sum(res ** 2)), ok, msg, nfev)
 
@@ -586,6 +683,158 @@ class SphereIdentifier:
         scale = np.array([1e-3, 1e-3, 1e-3, 1e-3, 1e-2, 1e-2, 1e-2, 1e-3, 1e-3, 1e-3, 1e-2, 1e-2, 1e-2])
         sol = least_squares(fun, w, x_scale=scale, method="lm", max_nfev=400)
         return float(np.mean(sol.fun ** 2))
+
+    # ------------------------------------------------------------------ lean search
+    @staticmethod
+    def _lean_axis(tx, tz):
+        """Unit axis Rz(tz) Rx(tx) e_y of an object leaning by tx about X and tz about Z [rad]."""
+        return np.array([-np.sin(tz) * np.cos(tx), np.cos(tz) * np.cos(tx), np.sin(tx)])
+
+    @staticmethod
+    def _rotation_onto(a):
+        """A proper rotation L with L e_y = a (the smallest)."""
+        ey = np.array([0.0, 1.0, 0.0])
+        v = np.cross(ey, a)
+        sn, cs = float(np.linalg.norm(v)), float(a @ ey)
+        if sn < 1e-12:
+            return np.eye(3)
+        k = v / sn
+        kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+        return np.eye(3) + sn * kx + (1.0 - cs) * kx @ kx
+
+    def _lean_starts(self, frames, alphas, srd_m, x_d, y_p):
+        """Poses of a leaning object from a vote on the cylinder the centres lie on.
+
+        Each detection is a ray from the source (nominal instrument, the detector shifted by ``x_d``); for a
+        trial lean of the object's axis (through (0, y_p, srd) at alpha = 0, undone per frame by the table
+        rotation) the ray meets the cylinder of the calibrated centres at two points, each an (axial height h,
+        azimuth phi) on the object. A right lean puts the detections' (h, phi) onto the calibrated (h_i, phi_i)
+        moved by one common (height offset, spin): every detection votes for (h - h_i, phi - phi_i) over all
+        spheres i, and the lean whose vote peaks highest wins. Neither labelling nor spin is needed to vote,
+        so the lean is searched on its own grid (2 angles) instead of inside the rho_Y x height grid.
+        Returns [(start pose w, frame index, detection index, sphere index)] of the ``lean_starts`` best
+        distinct leans (both orientations), with the detections the peak labels.
+        """
+        st = self.settings
+        rad, hk, pk = self._cyl
+        hs = np.unique(np.round(hk, 9))
+        hbin = 0.5 * float(np.median(np.diff(hs))) if hs.size > 1 else float(np.median(self.radii_m))
+        hbin = max(hbin, 1e-4)
+        pbin = 2.0 * hbin / rad
+        # the height is left to the vote: the mean detected row misses the object's centre by up to ~8 mm
+        # (shadows lost unevenly to overlaps and the detector edges)
+        hrange = float(np.ptp(hk)) + 2.0 * hbin
+        nh, npb = int(np.ceil(2 * hrange / hbin)), int(np.ceil(2 * np.pi / pbin))
+        pbin = 2 * np.pi / npb
+        axis = np.array([0.0, 0.0, srd_m])
+        centre = np.array([0.0, y_p, srd_m])
+        o_all, d_all, fj_all, fi_all = [], [], [], []
+        for j, (f, a) in enumerate(zip(frames, alphas)):
+            u, v = self.detector.metric_from_pixels(f[:, 0], f[:, 1])
+            d = np.column_stack([u + x_d, v, np.full(len(f), self.sdd_m)])
+            ra = rot_y(-a)                       # undo the table rotation: the object at alpha = 0
+            o_all.append(np.repeat((ra @ (-axis) + axis - centre)[None], len(f), axis=0))
+            d_all.append(d @ ra.T)
+            fj_all.append(np.full(len(f), j))
+            fi_all.append(np.arange(len(f)))
+        o0, d0 = np.vstack(o_all), np.vstack(d_all)
+        d0 /= np.linalg.norm(d0, axis=1)[:, None]
+        fj_all, fi_all = np.concatenate(fj_all), np.concatenate(fi_all)
+        orient = [(0, hk, pk)] + ([(1, -hk, -pk)] if st.upside_down else [])
+
+        def points(tx, tz):
+            """(h, phi, detection row) of the ray-cylinder meeting points for one lean."""
+            lm = self._rotation_onto(self._lean_axis(tx, tz))
+            o, d = o0 @ lm, d0 @ lm
+            qa = d[:, 0] ** 2 + d[:, 2] ** 2
+            qb = 2.0 * (o[:, 0] * d[:, 0] + o[:, 2] * d[:, 2])
+            qc = o[:, 0] ** 2 + o[:, 2] ** 2 - rad * rad
+            disc = qb * qb - 4.0 * qa * qc
+            ok = (disc > 0) & (qa > 1e-12)
+            sq = np.sqrt(np.where(ok, disc, 0.0))
+            p, row = [], []
+            for sgn in (-1.0, 1.0):
+                t = (-qb + sgn * sq) / (2.0 * np.where(ok, qa, 1.0))
+                p.append((o + t[:, None] * d)[ok])
+                row.append(np.nonzero(ok)[0])
+            p = np.vstack(p)
+            return p[:, 1], np.arctan2(p[:, 2], p[:, 0]), np.concatenate(row), lm
+
+        def vote(h, ph, hk_, pk_):
+            dh = h[:, None] - hk_[None]
+            m = np.abs(dh) < hrange
+            ih = ((dh[m] + hrange) / hbin).astype(np.int64)
+            ip = (((ph[:, None] - pk_[None])[m] % (2 * np.pi)) / pbin).astype(np.int64) % npb
+            hist = np.bincount(ih * npb + ip, minlength=nh * npb)[: nh * npb].reshape(nh, npb)
+            sm = hist + np.roll(hist, 1, axis=1)         # 2 x 2 bins: a peak on a bin edge is not split
+            sm = sm[:-1] + sm[1:]
+            i = int(np.argmax(sm))
+            return int(sm.flat[i]), (i // npb + 1) * hbin - hrange, (i % npb) * pbin
+
+        lim = np.deg2rad(st.lean_search_deg)
+        g = np.arange(-lim, lim + 1e-12, np.deg2rad(st.lean_step_deg))
+        scored = []
+        for tx in g:
+            for tz in g:
+                if tx * tx + tz * tz > lim * lim * (1 + 1e-9):
+                    continue
+                h, ph, _, _ = points(tx, tz)
+                for flip, hk_, pk_ in orient:
+                    n, dh, dp = vote(h, ph, hk_, pk_)
+                    scored.append((n, tx, tz, flip, dh, dp))
+        scored.sort(key=lambda t: -t[0])
+        picked = []
+        for q in scored:
+            if all(q[3] != p[3] or np.hypot(q[1] - p[1], q[2] - p[2]) > 2.5 * np.deg2rad(st.lean_step_deg)
+                   for p in picked):
+                picked.append(q)
+            if len(picked) >= st.lean_starts:
+                break
+        out = []
+        for n, tx, tz, flip, dh, dp in picked:
+            h, ph, row, lm = points(tx, tz)
+            hk_, pk_ = orient[flip][1], orient[flip][2]
+            eh = np.abs(h[:, None] - hk_[None] - dh)
+            ep = np.abs(np.angle(np.exp(1j * (ph[:, None] - pk_[None] - dp))))
+            hit = (eh <= hbin) & (ep <= pbin)
+            pair_row, pair_k = np.nonzero(hit)
+            det = row[pair_row]
+            # a detection with two candidate spheres, or a sphere claimed twice in a frame: not used
+            key = fj_all[det] * len(hk_) + pair_k
+            uk, ck = np.unique(key, return_counts=True)
+            ud, cd = np.unique(det, return_counts=True)
+            keep = np.isin(key, uk[ck == 1]) & np.isin(det, ud[cd == 1])
+            r_obj = lm @ rot_y(-dp) @ (rot_x(np.pi) if flip else np.eye(3))
+            w = self._nominal_w(srd_m)
+            w[1] = x_d
+            w[7:10] = centre + dh * (lm @ np.array([0.0, 1.0, 0.0]))
+            w[10], w[11], w[12] = _object_angles(r_obj)
+            w = self._fit_labelled(frames, alphas, w, fj_all[det[keep]], fi_all[det[keep]], pair_k[keep])
+            pred, r_px = self._raw_predict(alphas, w)
+            out.append((self._score(frames, pred, self._gate(r_px=r_px)), flip, w))
+        # the refinement is the costly part: only the n_starts best fits go on (and the other orientation's best)
+        out.sort(key=lambda t: t[0])
+        keep = out[: st.n_starts]
+        keep += [q for q in out[st.n_starts:] if q[1] not in {k[1] for k in keep}][:1]
+        return [q[2] for q in keep]
+
+    def _fit_labelled(self, frames, alphas, w, fj, fi, sn):
+        """Least-squares pose (the refinement's parameters) on given detection -> sphere pairs, robust
+        to a few wrong pairs."""
+        if len(fj) < 6:
+            return w
+        obs = np.vstack([frames[j][i] for j, i in zip(fj, fi)])
+
+        def fun(x):
+            ww = w.copy()
+            ww[_FREE] = x
+            return (forward_srf(ww, self.centres_of_m, alphas, self.detector)[fj, sn] - obs).ravel()
+
+        scale = np.array([1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-2, 1e-2, 1e-2])
+        sol = least_squares(fun, w[_FREE], x_scale=scale, loss="soft_l1", f_scale=2.0, max_nfev=100)
+        out = w.copy()
+        out[_FREE] = sol.x
+        return out
 
     def _diagnose(self, frames, alphas, srd_m) -> str:
         """Why a pose search failed: try the frames mirrored and the rotation reversed."""
