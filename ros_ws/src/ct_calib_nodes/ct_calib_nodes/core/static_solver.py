@@ -25,6 +25,7 @@ from .geometry import DetectorFrameGeometry, DetectorSpec, object_rotation, stat
 from .lm import LOSSES, STOL, correlation_from_covariance, covariance_from_jacobian, levenberg_marquardt
 from .noise import (MAX_RMS_RATIO, NoiseModel, assess_fit, axis_normals, axis_weights_sigma, estimate_noise,
                     sandwich_covariance)
+from .location_noise import class_factors, location_class, on_cylinder, scaled_sigma
 from .observations import CentreObservations
 from .terms import check_terms
 
@@ -448,7 +449,7 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
                  sdd_reported_m: float, *, terms=(), loss: str = "linear", f_scale_px: float | None = None,
                  x0=None, max_iter: int = 100, max_rms_px: float = 2.0, cond_limit: float = 1e10,
                  max_rms_ratio: float = MAX_RMS_RATIO, centre_uncertainty_m=None,
-                 _orientation_check: bool = True) -> StaticResult:
+                 location_classes: bool = True, _orientation_check: bool = True) -> StaticResult:
     """Solve the static geometry at stage position k = 1 (section 3.1, eq. 3).
 
     Parameters
@@ -489,6 +490,9 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
         covariance.
     cond_limit : float
         Condition number above which the problem is declared degenerate.
+    location_classes : bool
+        Weight observations by their location class (location_noise.py: where the sphere sits
+        relative to the object's axis) when a class is significantly noisier than the rest.
 
     Returns
     -------
@@ -557,6 +561,22 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
         nfev, njev, nit = nfev + res.nfev, njev + res.njev, nit + res.n_iter
 
     q = obs.n_obs
+    # Location classes (location_noise.py): observations whose sphere sits where the object's support
+    # biases its shadow (the body tube's wall band along the silhouette) are noisier than the detector
+    # says; a class significantly noisier than the rest gets its own factor on the detector's sigma
+    # and the fit is redone with it (the noise model below then works on the rescaled sigma).
+    loc = None
+    if (location_classes and sigma is not None and loss == "linear" and res.success
+            and np.all(np.isfinite(res.x)) and on_cylinder(centres)):
+        cls = location_class(res.x[:13], centres, obs.sphere_index, obs.alpha_rad)
+        fac = class_factors(res.residuals, sigma, cls)
+        if np.any(fac != 1.0):
+            sigma = scaled_sigma(sigma, cls, fac)
+            res_l = levenberg_marquardt(fun, None, res.x, sigma=sigma, max_iter=max_iter, stol=STOL, chord_test=True)
+            nfev, njev, nit = nfev + res_l.nfev, njev + res_l.njev, nit + res_l.n_iter
+            if res_l.success:
+                res = res_l
+        loc = (cls, fac)
     # Noise from the data (noise.py): per-axis scale of the reported sigma and a per-projection
     # shared shift. The fit is redone once with the sigma rescaled per axis (so columns and rows
     # get their measured relative weights) and the covariance is the sandwich under that model.
@@ -583,6 +603,11 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
     unc = static_uncertainty(res.x, kern, obs, sigma, len(centres), centre_uncertainty_m, cond_limit,
                              weights=fit_weights, evaluated=(res.residuals, res.jac) if at_x else None)
     cov, noise, cov_noise, centre_sens, covariance = unc
+    if loc is not None:
+        cls, fac = loc
+        noise = replace(noise, location_factor_u=tuple(float(v) for v in fac[0]),
+                        location_factor_v=tuple(float(v) for v in fac[1]),
+                        location_class_counts=tuple(int(v) for v in np.bincount(cls, minlength=fac.shape[1])))
     u_c = None if centre_sens is None else np.broadcast_to(np.asarray(centre_uncertainty_m, float), (len(centres),))
     r2 = -res.residuals.reshape(2, -1).T                 # observed - modelled
     rms = float(np.sqrt(np.mean(res.residuals ** 2)))
