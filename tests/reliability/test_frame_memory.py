@@ -42,8 +42,8 @@ def test_idle_calibration_node_returns_frame_memory(start_node, ros_node, tmp_pa
         ros_node.spin_until(lambda: False, timeout=seconds)
         return rss_mib(pid)
 
-    # a frame is 4.8 MiB. Allowed: the last frame of each of the 3 cameras still held (measured in 2 of 6
-    # fresh-clone runs, round 22: +13.8 and +16.2 MiB after a burst, released by the next one) and one
+    # a frame is 4.8 MiB. Allowed: the last frame of each of the 3 cameras still held (in 2 of the 5
+    # fresh-clone runs of round 22: +13.8 and +16.2 MiB after a burst, released by the next one) and one
     # frame's worth of other allocations (Python objects, DDS bookkeeping). Before the fix the RSS stayed
     # at the most frames ever held: ~15 frames, +73 MiB.
     limit = 4 * FRAME / 2**20
