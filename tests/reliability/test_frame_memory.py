@@ -17,6 +17,10 @@ def rss_mib(pid):
         return next(int(ln.split()[1]) for ln in f if ln.startswith("VmRSS:")) / 1024
 
 
+# Timing-dependent (when DDS and the allocator hand back the last frames): in fresh-clone runs of round 22
+# one burst in 3 of 6 runs left 3-5 frames held for the whole wait, released by the next burst; a
+# regression (the pre-fix pools: +38.5 MiB after every burst) fails every attempt.
+@pytest.mark.flaky(reruns=2)
 def test_idle_calibration_node_returns_frame_memory(start_node, ros_node, tmp_path):
     from builtin_interfaces.msg import Time
     from sensor_msgs.msg import Image
