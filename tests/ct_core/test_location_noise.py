@@ -62,7 +62,7 @@ def silhouette_noisy_no_classes(centres, detector, campaign):
 def test_silhouette_classes_found_and_weighted(silhouette_noisy, silhouette_noisy_no_classes):
     trials, silhouette = silhouette_noisy
     assert 0.2 < silhouette.mean() < 0.5                 # |sin| of a uniform angle >= 0.8: 41 %
-    fac = np.array([t[2].location_factor_u for t in trials])            # (N, 2 N_BINS)
+    fac = np.array([t[2].location_factor for t in trials])            # (N, 2 N_BINS)
     # found in every trial, with the factor near K; nothing fired elsewhere in more than 2 % of the trials
     assert np.all(fac[:, [8, 9, N_BINS + 8, N_BINS + 9]] > 1.0)
     assert np.all(np.abs(np.median(fac[:, [8, 9, N_BINS + 8, N_BINS + 9]], axis=0) - K) < 0.3 * K), np.median(fac, 0)
@@ -84,5 +84,5 @@ def test_silhouette_classes_found_and_weighted(silhouette_noisy, silhouette_nois
 
 def test_clean_data_rarely_gets_classes(centres, detector, campaign):
     trials, _ = _trials(centres, detector, campaign, 1.0, 1502, n=60)
-    fired = np.mean([any(v != 1.0 for v in t[2].location_factor_u) for t in trials])
+    fired = np.mean([any(v != 1.0 for v in t[2].location_factor) for t in trials])
     assert fired <= 0.05, fired

@@ -198,6 +198,23 @@ def sphere_centres_srf(w, centres_of_m, alpha_rad) -> np.ndarray:
     return np.einsum("mij,nj->mni", rot, c1 - r) + r
 
 
+def cylinder_about_y(centres_of_m, tol_m: float | None = None, rel_tol: float | None = None):
+    """Do the centres lie on one cylinder about the object's Y axis (as helix49's do)?
+
+    Returns (radius [m], heights (N,) [m], azimuths (N,) [rad], atan2(z, x)) when there are at least 6
+    centres and every one's distance from the Y axis is within the tolerance of the median distance:
+    ``tol_m`` [m] if given, else ``rel_tol`` times that median; None otherwise. The one test shared by
+    the identity search (which needs the cylinder to search leaning poses) and the location classes
+    (which need it to say where a sphere sits relative to the object's axis)."""
+    c = _check_points(centres_of_m)
+    rad = np.hypot(c[:, 0], c[:, 2])
+    r = float(np.median(rad))
+    tol = tol_m if tol_m is not None else (rel_tol if rel_tol is not None else 0.0) * r
+    if len(c) < 6 or not r > 0 or float(np.max(np.abs(rad - r))) > tol:
+        return None
+    return r, c[:, 1].copy(), np.arctan2(c[:, 2], c[:, 0])
+
+
 def project_srf(w, points_srf_m, detector: DetectorSpec) -> np.ndarray:
     """Central projection of {SRF} points from the focal spot onto the detector (App. A).
 

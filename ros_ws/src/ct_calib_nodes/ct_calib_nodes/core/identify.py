@@ -99,6 +99,7 @@ from scipy.optimize import least_squares
 
 from .geometry import (
     DetectorSpec,
+    cylinder_about_y,
     forward_df,
     forward_srf,
     object_rotation,
@@ -398,12 +399,7 @@ class SphereIdentifier:
     def _cylinder(self):
         """(radius, heights, azimuths) when every calibrated centre lies on one cylinder about the object's
         Y axis (to ``cylinder_tolerance_m``, helix49 to 1e-9 m); else None (no lean search)."""
-        c = self.centres_of_m
-        rad = np.hypot(c[:, 0], c[:, 2])
-        r = float(np.median(rad))
-        if len(c) < 6 or r <= 0 or np.max(np.abs(rad - r)) > self.settings.cylinder_tolerance_m:
-            return None
-        return r, c[:, 1].copy(), np.arctan2(c[:, 2], c[:, 0])
+        return cylinder_about_y(self.centres_of_m, tol_m=self.settings.cylinder_tolerance_m)
 
     def _shifted_pose(self, w, r, t):
         """Pose w composed with the object motion x -> r x + t: a sphere is then labelled as the one the

@@ -17,8 +17,8 @@ s = (offset from the axis) . e_lat / |offset| in 10 bins of |s| over [0, 1], tim
 the axis as seen from the source (20 classes). Per image axis, each class's mean square of the
 whitened residuals is compared with the median class's; a class whose excess is significant
 (chi-square, Bonferroni over the classes and axes at ``P_CLASS``, at least ``MIN_CLASS_OBS``
-observations) gets its own factor sqrt(mean square / median), the larger of its two axes' for both,
-everything else 1. The solver then multiplies the detector's sigma by the factors, refits and forms
+observations) gets its own factor sqrt(mean square / median), the larger of its two axes', applied
+to both axes (one factor per class), everything else 1. The solver then multiplies the detector's sigma by the factors, refits and forms
 the covariance under the new weights (noise.py's model on top). Objects whose centres do not lie on
 a cylinder about their Y axis get no classes.
 
@@ -38,36 +38,32 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from .geometry import object_rotation, rot_axis_angle
+from .geometry import cylinder_about_y, sphere_centres_srf
 
 N_BINS = 10                 # bins of |s| over [0, 1]
+N_CLASSES = 2 * N_BINS      # |s| bins in front of the object's axis, then behind it
 MIN_CLASS_OBS = 30          # a class needs this many observations to be tested
 P_CLASS = 1e-3              # family-wise false-alarm probability of a class factor per solve
 CYLINDER_TOLERANCE = 0.05   # centres' radii about the Y axis within 5 % of their median
 
 
 def on_cylinder(centres_of_m) -> bool:
-    """Do the calibrated centres lie on a cylinder about the object's Y axis (as helix49's do)?"""
-    c = np.asarray(centres_of_m, dtype=float)
-    rad = np.hypot(c[:, 0], c[:, 2])
-    r = float(np.median(rad))
-    return len(c) >= 6 and r > 0 and float(np.max(np.abs(rad - r))) <= CYLINDER_TOLERANCE * r
+    """Do the calibrated centres lie on a cylinder about the object's Y axis (geometry.cylinder_about_y,
+    to 5 % of its radius: the classes need only the side of the axis and the lateral position)?"""
+    return cylinder_about_y(centres_of_m, rel_tol=CYLINDER_TOLERANCE) is not None
 
 
 def location_class(w, centres_of_m, sphere_index, alpha_rad) -> np.ndarray:
-    """Class (Q,) int in [0, 2 N_BINS) of each observation: |s| bin, + N_BINS behind the axis."""
-    w = np.asarray(w, dtype=float)
+    """Class (Q,) int in [0, N_CLASSES) of each observation: |s| bin, + N_BINS behind the axis."""
     c_of = np.asarray(centres_of_m, dtype=float)
     si = np.asarray(sphere_index)
-    al = np.asarray(alpha_rad, dtype=float)
-    r_obj = object_rotation(w[10], w[11], w[12])
-    z_r = np.array([0.0, 0.0, w[0]])
-    rot = rot_axis_angle([0.0, 1.0, 0.0], al)                              # (Q, 3, 3)
-    c1 = c_of[si] @ r_obj.T + w[7:10]                                      # sphere centres at alpha = 0
-    c = np.einsum("qij,qj->qi", rot, c1 - z_r) + z_r                       # in {SRF} at each alpha
-    a0 = np.einsum("qij,j->qi", rot, w[7:10] - z_r) + z_r                  # the object's origin
-    ad = np.einsum("qij,j->qi", rot, r_obj[:, 1])                          # and Y axis
-    d = c - a0
+    angles, ai = np.unique(np.asarray(alpha_rad, dtype=float), return_inverse=True)
+    # the spheres, the object's origin and a point 1 m up its Y axis, in {SRF} at each distinct angle
+    pts = sphere_centres_srf(w, np.vstack([c_of, [[0.0, 0.0, 0.0], [0.0, 1.0, 0.0]]]), angles)
+    n = len(c_of)
+    a0 = pts[:, n][ai]                                                     # (Q, 3) axis point
+    ad = (pts[:, n + 1] - pts[:, n])[ai]                                   # unit axis direction
+    d = pts[ai, si] - a0
     d -= np.sum(d * ad, axis=1)[:, None] * ad                              # offset from the axis
     e_ray = a0 / np.linalg.norm(a0, axis=1)[:, None]                       # source at the SRF origin
     e_lat = np.cross(ad, e_ray)
@@ -79,40 +75,37 @@ def location_class(w, centres_of_m, sphere_index, alpha_rad) -> np.ndarray:
 
 
 def class_factors(residuals, sigma, classes) -> np.ndarray:
-    """Factors (2, n_classes) per image axis (u, v) and class; 1 where nothing significant.
+    """Factor (N_CLASSES,) on the sigma of each class, 1 where nothing is significant.
 
-    residuals, sigma: blocked (2Q,) [u..., v...]; classes: (Q,)."""
+    residuals, sigma: blocked (2Q,) [u..., v...]; classes: (Q,). Each axis is tested; a class noisier
+    on either gets the larger of its two axes' factors, for both: the observation is degraded as a
+    whole (measured on the 22 recordings: the column factor on the columns only left phi at z sd 1.57,
+    on both axes 1.00)."""
     r = np.asarray(residuals, dtype=float)
     q = r.size // 2
     sig = np.ones(2 * q) if sigma is None else np.asarray(sigma, dtype=float)
     cl = np.asarray(classes)
-    n_cl = 2 * N_BINS
-    out = np.ones((2, n_cl))
-    cnt = np.bincount(cl, minlength=n_cl)
+    out = np.ones(N_CLASSES)
+    cnt = np.bincount(cl, minlength=N_CLASSES)
     tested = np.flatnonzero(cnt >= MIN_CLASS_OBS)
     if tested.size < 3:
         return out
     p_each = P_CLASS / (2 * tested.size)
     for a in range(2):
         z2 = (r[a * q:(a + 1) * q] / sig[a * q:(a + 1) * q]) ** 2
-        ms = np.bincount(cl, z2, minlength=n_cl)[tested] / cnt[tested]
+        ms = np.bincount(cl, z2, minlength=N_CLASSES)[tested] / cnt[tested]
         base = float(np.median(ms))
         if not base > 0:
             continue
         chi2 = ms * cnt[tested] / base
         crit = stats.chi2.isf(p_each, cnt[tested])
         hit = chi2 > crit
-        out[a, tested[hit]] = np.sqrt(ms[hit] / base)
-    # one factor per class for both axes, the larger: the observation is degraded as a whole (measured on
-    # the 22 recordings: the column factor on the columns only left phi at z sd 1.57, on both axes 1.00)
-    return np.repeat(out.max(axis=0)[None], 2, axis=0)
+        out[tested[hit]] = np.maximum(out[tested[hit]], np.sqrt(ms[hit] / base))
+    return out
 
 
 def scaled_sigma(sigma, classes, factors) -> np.ndarray:
-    """The blocked sigma (2Q,) times each observation's class factor on each axis."""
+    """The blocked sigma (2Q,) times each observation's class factor (on both axes)."""
     cl = np.asarray(classes)
-    q = cl.size
-    sig = np.ones(2 * q) if sigma is None else np.asarray(sigma, dtype=float).copy()
-    sig[:q] *= factors[0, cl]
-    sig[q:] *= factors[1, cl]
-    return sig
+    sig = np.ones(2 * cl.size) if sigma is None else np.asarray(sigma, dtype=float)
+    return sig * np.tile(np.asarray(factors, dtype=float)[cl], 2)

@@ -87,10 +87,10 @@ class NoiseModel:
     track_sd_inflation : tuple of float
         Per parameter: standard uncertainty with the track correlation over that without it
         (filled by the solver that forms the covariance; () when not formed).
-    location_factor_u, location_factor_v : tuple of float
-        Static solve only (location_noise.py): the factor on the detector's sigma of each location
-        class (|s| bin 0..9 in front of the object's axis, 10..19 behind it); 1 where the class is not
-        significantly noisier than the rest; () when no classes were formed.
+    location_factor : tuple of float
+        Static solve only (location_noise.py): the factor on the detector's sigma (both image axes) of
+        each location class (|s| bin 0..9 in front of the object's axis, 10..19 behind it); 1 where the
+        class is not significantly noisier than the rest; () when no classes were formed.
     location_class_counts : tuple of int
         Observations in each location class.
     """
@@ -112,8 +112,7 @@ class NoiseModel:
     track_corr_u: tuple = ()
     track_corr_v: tuple = ()
     track_sd_inflation: tuple = ()
-    location_factor_u: tuple = ()
-    location_factor_v: tuple = ()
+    location_factor: tuple = ()
     location_class_counts: tuple = ()
 
     @property

@@ -605,9 +605,8 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
     cov, noise, cov_noise, centre_sens, covariance = unc
     if loc is not None:
         cls, fac = loc
-        noise = replace(noise, location_factor_u=tuple(float(v) for v in fac[0]),
-                        location_factor_v=tuple(float(v) for v in fac[1]),
-                        location_class_counts=tuple(int(v) for v in np.bincount(cls, minlength=fac.shape[1])))
+        noise = replace(noise, location_factor=tuple(float(v) for v in fac),
+                        location_class_counts=tuple(int(v) for v in np.bincount(cls, minlength=fac.size)))
     u_c = None if centre_sens is None else np.broadcast_to(np.asarray(centre_uncertainty_m, float), (len(centres),))
     r2 = -res.residuals.reshape(2, -1).T                 # observed - modelled
     rms = float(np.sqrt(np.mean(res.residuals ** 2)))
