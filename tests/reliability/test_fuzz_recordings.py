@@ -20,10 +20,12 @@ pytestmark = [pytest.mark.ros, pytest.mark.slow]
 def test_fuzzed_recordings_reduced(tmp_path):
     path, entries = CT.make(tmp_path / "cell", full=False)
     base = path.read_bytes()
-    muts = make_mutants(base, entries, n_target=300, seed=7,
-                        mix={"bitflip": 0.6, "garbage": 0.35, "field": 0.03, "combo": 0.02})
+    # 170 mutants: every fixed kind in full (68) and ~100 random ones (was 300 in all: 75 s of the suite's
+    # 15 min; the full run of >= 2000 is the benchmark)
+    muts = make_mutants(base, entries, n_target=170, seed=7,
+                        mix={"bitflip": 0.55, "garbage": 0.3, "field": 0.1, "combo": 0.05})
     kinds = collections.Counter(m.kind for m in muts)
-    assert len(muts) >= 300 and set(kinds) == {"truncate_boundary", "truncate_mid", "schema", "encoding", "stamps",
+    assert len(muts) >= 170 and set(kinds) == {"truncate_boundary", "truncate_mid", "schema", "encoding", "stamps",
                                                "bitflip", "garbage", "field", "combo"}
     camp = run_campaign(path, entries, CT.tools, muts, tmp_path, chunk_size=CT.chunk_size)
     table = "\n".join(f"{k}: {v}" for k, v in sorted(camp.counts.items()))
