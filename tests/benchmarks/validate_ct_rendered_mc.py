@@ -17,6 +17,10 @@ true) against the travel, in units of its standard uncertainty.
 Targets (issue "CT calibration on data it has never seen", item 1): every instrument parameter's
 z-score |mean| <= 0.3 and sd in 0.8 to 1.25; no positioning trend beyond its uncertainty.
 
+Error-map components: each of the six (positioning, X / Y straightness, pitch, yaw, roll) against the
+truth in units of its stated u at positions 2..K, and the chi-square of its K errors under the map's
+joint covariance (``--trials 0`` runs the error-map part alone).
+
 Usage:  .venv/bin/python tests/benchmarks/validate_ct_rendered_mc.py [--trials 48] [--maps 6] [--workers 2]
 Prints a table, then ONE JSON line.
 """
@@ -56,7 +60,10 @@ def main():
         maps = list(ex.map(run_error_map_trial, range(args.seed + 10000, args.seed + 10000 + args.maps)))
     wall = time.time() - t0
     ok = [t for t in trials if t.outcome == "success"]
-    now, before = z_scores(ok, "now"), z_scores(ok, "before")
+    if not ok:                                  # --trials 0: the error-map part only
+        now = before = np.full((1, len(NAMES)), np.nan)
+    else:
+        now, before = z_scores(ok, "now"), z_scores(ok, "before")
     print(f"\n{len(ok)}/{len(trials)} instruments calibrated (outcomes: "
           f"{sorted({t.outcome for t in trials})}); chi2/dof median {np.median([t.variance_factor for t in ok]):.2f}")
     print("param     now: z mean  z sd     before: z mean  z sd")
@@ -75,7 +82,22 @@ def main():
         print(f"  seed {m['seed']}: slope {m['slope_um_per_m']:+.2f} +- {m['u_slope_um_per_m']:.2f} um/m, "
               f"max |err/u| {m['max_abs_z']:.2f}, err at the far end {m['positioning_error_um'][-1]:+.2f} um "
               f"(u {m['u_positioning_um'][-1]:.2f})")
+    comp = {}
+    if good_maps:
+        print("error-map components against the truth, positions 2..K, err/u: mean, sd, max |z|; "
+              "chi2 / rank of each component's K errors under the joint covariance (sum over maps)")
+        for name in good_maps[0]["component_z"]:
+            zc = np.concatenate([m["component_z"][name] for m in good_maps])
+            c2 = sum(m["component_chi2_dof"][name][0] for m in good_maps)
+            dof = sum(m["component_chi2_dof"][name][1] for m in good_maps)
+            comp[name] = {"z_mean": round(float(zc.mean()), 3), "z_sd": round(float(zc.std(ddof=1)), 3),
+                          "max_abs_z": round(float(np.abs(zc).max()), 2), "chi2_per_dof": round(c2 / max(dof, 1), 3),
+                          "dof": dof}
+            r = comp[name]
+            print(f"  {name:15s} {r['z_mean']:+6.2f} {r['z_sd']:5.2f} {r['max_abs_z']:5.2f}   "
+                  f"chi2/dof {r['chi2_per_dof']:.2f} ({dof})")
     out = {"trials": len(trials), "calibrated": len(ok), "views": args.views, "wall_s": round(wall, 1),
+           "map_components": comp,
            "z": rows, "static_target_met": bool(met),
            "map_slope_z": zs.tolist(), "map_slope_within_3u": bool(np.all(np.abs(zs) < 3.0)) if zs.size else None,
            "map_failures": [m.get("message") for m in maps if not m["ok"]]}

@@ -177,4 +177,19 @@ def run_error_map_trial(seed: int, n_positions: int = 7, n_views: int = 36,
     out.update(ok=True, positioning_error_um=(err * 1e6).tolist(), u_positioning_um=(em.u_positioning_m * 1e6).tolist(),
                slope_um_per_m=slope * 1e6, u_slope_um_per_m=u_slope * 1e6, z_slope=slope / u_slope,
                max_abs_z=float(np.max(np.abs(err[1:] / em.u_positioning_m[1:]))))
+    # every component of the map against the truth, in units of its stated u (positions 2..K; the first is
+    # the reference, 0 by definition except the straightness, a deviation from the fitted line), and the
+    # chi-square of each component's K errors under the map's joint covariance (pseudo-inverse: the line
+    # removed from the straightness takes 2 degrees of freedom, the reference position 1 from the others)
+    comps = ("positioning", "straightness_x", "straightness_y", "pitch", "yaw", "roll")
+    units = ("m", "m", "m", "rad", "rad", "rad")
+    z, chi2 = {}, {}
+    for c, (name, unit) in enumerate(zip(comps, units)):
+        e = getattr(em, f"{name}_{unit}") - errors[:, c]
+        u = getattr(em, f"u_{name}_{unit}")
+        z[name] = (e[1:] / u[1:]).tolist()
+        cc = em.covariance[c::6, c::6]
+        pinv = np.linalg.pinv(cc, rcond=1e-10, hermitian=True)
+        chi2[name] = [float(e @ pinv @ e), int(np.linalg.matrix_rank(cc, tol=1e-10 * np.max(np.diag(cc))))]
+    out.update(component_z=z, component_chi2_dof=chi2)
     return out
