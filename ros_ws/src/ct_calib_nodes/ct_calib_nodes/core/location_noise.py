@@ -18,9 +18,9 @@ the axis as seen from the source (20 classes). Per image axis, each class's mean
 whitened residuals is compared with the median class's; a class whose excess is significant
 (chi-square, Bonferroni over the classes and axes at ``P_CLASS``, at least ``MIN_CLASS_OBS``
 observations) gets its own factor sqrt(mean square / median), the larger of its two axes', applied
-to both axes (one factor per class), everything else 1. The solver then multiplies the detector's sigma by the factors, refits and forms
-the covariance under the new weights (noise.py's model on top). Objects whose centres do not lie on
-a cylinder about their Y axis get no classes.
+to both axes (one factor per class), everything else 1. The solver then multiplies the detector's
+sigma by the factors, refits and forms the covariance under the new weights (noise.py's model on
+top). Objects whose centres do not lie on a cylinder about their Y axis get no classes.
 
 Measured (22 recordings, same detections, solved in-process without / with the classes): phi z sd
 1.49 -> 1.00 (mean -0.33 -> -0.12), sum of the 7 instrument z^2 9.08 -> 8.07 per case; theta
