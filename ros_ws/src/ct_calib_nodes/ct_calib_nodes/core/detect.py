@@ -252,6 +252,12 @@ class DetectionSettings:
     background_edge_sigma_px : float
         A fixed extra sd [px] across the structure for those shadows (0 = off; the former
         default 0.012 px was calibrated on the simulator's carbon tube).
+    arc_pass, max_arc_sector_misfit, min_arc_sectors
+        ``arc_pass``: a shadow the corner model refuses too is measured on the part of its edge
+        whose surroundings a plane fits (``_arc_measure``): a plane of log T on a narrow annulus,
+        30 deg sectors whose rms misfit exceeds ``max_arc_sector_misfit`` x the pixel noise
+        dropped one at a time (worst first), at least ``min_arc_sectors`` of 12 kept, and the
+        edge rays of the dropped sectors left out of the ellipse fit.
     """
 
     segment_depth: float = 0.10
@@ -288,6 +294,9 @@ class DetectionSettings:
     band_core: bool = True
     direction_blend: bool = False
     grey_moment_screen: bool = True
+    arc_pass: bool = True
+    max_arc_sector_misfit: float = 1.5
+    min_arc_sectors: int = 6
 
     def __post_init__(self):
         if self.ellipse_fitter not in ("fitEllipse", "fitEllipseAMS", "fitEllipseDirect", "geometric"):
@@ -1162,6 +1171,7 @@ class _LocalBackground:
     minor: np.ndarray       # (C,) gradient energy along the structure / the noise's
     corner: tuple | None = None  # per candidate a _CornerModel whose grad marks background edges
     direction_evidence: np.ndarray | None = None  # (C,) |theta - frame's| / sd (see _blend_direction)
+    ray_keep: np.ndarray | None = None  # (C, 12) rays of these 30 deg sectors used (arc pass), None: all
 
 
 def _local_backgrounds(trans, bg, cand, st):
@@ -1573,7 +1583,16 @@ def _corner_pass(trans, cand, model, meas, deferred, st, drange, rej):
         if not cm.ok or not cm.ratio <= st.max_corner_misfit:
             why = cm.detail if not cm.ok else (f"misfit {cm.ratio:.2f} x the annulus noise > "
                                                f"{st.max_corner_misfit}")
-            rej.add(where, a, "background_structure", f"{detail}; corner model of two steps: {why}")
+            why = f"{detail}; corner model of two steps: {why}"
+            if st.arc_pass:
+                arc = _arc_measure(trans, cand, c, meas, st, drange, depth_ref, rej)
+                if arc is None:
+                    out.append(c)
+                    continue
+                if not arc:                # refused by an ordinary screen (recorded there)
+                    continue
+                why += f"; partial edge: {arc}"
+            rej.add(where, a, "background_structure", why)
             continue
         h, w = cm.bg.shape
         sl = (slice(cm.y0, cm.y0 + h), slice(cm.x0, cm.x0 + w))
@@ -1634,8 +1653,17 @@ def _corner_pass(trans, cand, model, meas, deferred, st, drange, rej):
             dc = mi.fits[0, :2] - smeas.fits[0, :2]
             extra += np.outer(dc, dc)
         if undetermined:
-            rej.add(where, a, "background_structure", f"{detail}; corner model of two steps: not determined "
-                                                      "(a one-sd change of its parameters leaves no measurable shadow)")
+            why = (f"{detail}; corner model of two steps: not determined "
+                   "(a one-sd change of its parameters leaves no measurable shadow)")
+            if st.arc_pass:
+                arc = _arc_measure(trans, cand, c, meas, st, drange, depth_ref, rej)
+                if arc is None:
+                    out.append(c)
+                    continue
+                if not arc:
+                    continue
+                why += f"; partial edge: {arc}"
+            rej.add(where, a, "background_structure", why)
             continue
         # and the model's misfit next to the shadow: the centre measured again with the
         # background corrected by the inner ring's mean residual per sector (interpolated in angle)
@@ -1654,6 +1682,142 @@ def _corner_pass(trans, cand, model, meas, deferred, st, drange, rej):
         meas.corner.add(c)
         out.append(c)
     return out
+
+
+def _arc_measure(trans, cand, c, meas, st, drange, depth_ref, rej):
+    """Measure candidate ``c`` on the part of its edge whose surroundings a plane fits.
+
+    A plane of log T is fitted to a narrow annulus (``radius + exclusion_px`` to that + max(4,
+    radius / 2) px; other shadows masked); the 12 sectors of 30 deg are scored by their rms
+    misfit over the pixel noise there (robust, from neighbouring-pixel differences), and the
+    worst sector above ``max_arc_sector_misfit`` is dropped and the plane refitted, until every
+    kept sector fits (at least ``min_arc_sectors`` kept). The window is divided by the plane and
+    the edges are measured as usual (flat background) on the rays of the kept sectors only.
+    Uncertainty added to the edge-scatter one (``meas.extra_cov``): the part of the centre's
+    variance that the other ellipse parameters take on a partial edge (the 5-parameter fit's
+    centre block over the 2-parameter one, near-circle Jacobian), and the plane's own (the
+    centre measured again with the plane moved by one sd along each principal direction of its
+    covariance). Returns None when accepted (``meas`` row replaced), "" when refused by an
+    ordinary screen (recorded in ``rej``), else the reason text."""
+    rows, cols = trans.shape
+    cx, cy = cand.centre[c]
+    r = float(cand.radius[c])
+    rin = r + st.exclusion_px
+    rout = rin + max(4.0, 0.5 * r)
+    R = int(np.ceil(rout)) + 1
+    y0, x0 = max(int(round(cy)) - R, 0), max(int(round(cx)) - R, 0)
+    y1, x1 = min(int(round(cy)) + R + 1, rows), min(int(round(cx)) + R + 1, cols)
+    sl = (slice(y0, y1), slice(x0, x1))
+    saved = trans[sl].copy()
+    win = saved.astype(np.float64)
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    X, Y = xx - cx, yy - cy
+    rho = np.hypot(X, Y)
+    use = (rho > rin) & (rho < rout) & (cand.shadows[sl] == 0) & (win > 1e-6)
+    if np.count_nonzero(use) < 60:
+        return f"only {np.count_nonzero(use)} background samples round the shadow"
+    L = np.log(np.where(win > 1e-6, win, 1e-6))
+    dh = (L[:, 1:] - L[:, :-1])[use[:, 1:] & use[:, :-1]]
+    dv = (L[1:, :] - L[:-1, :])[use[1:, :] & use[:-1, :]]
+    d = np.concatenate([dh, dv])
+    noise = max(1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2.0), 1e-9)
+    xs, ys, ls = X[use], Y[use], L[use]
+    sec = np.floor((np.arctan2(ys, xs) + np.pi) / (2 * np.pi) * 12).astype(np.intp) % 12
+    A = np.column_stack([np.ones_like(xs), xs, ys])
+    good = np.bincount(sec, minlength=12) >= 3
+    if np.count_nonzero(good) < st.min_arc_sectors:
+        return "too few sectors with background samples"
+    while True:
+        sel = good[sec]
+        coef, *_ = np.linalg.lstsq(A[sel], ls[sel], rcond=None)
+        res = ls - A @ coef
+        m = np.sqrt(np.bincount(sec, res * res, minlength=12) / np.maximum(np.bincount(sec, minlength=12), 1)) / noise
+        mg = np.where(good, m, -np.inf)
+        k = int(np.argmax(mg))
+        if mg[k] <= st.max_arc_sector_misfit:
+            break
+        good[k] = False
+        if np.count_nonzero(good) < st.min_arc_sectors:
+            return (f"a plane fits only {np.count_nonzero(good)} of 12 sectors round it (< {st.min_arc_sectors}; "
+                    f"misfit up to {float(np.max(m)):.1f} x the noise)")
+    # a structure that passes through or under the shadow crosses the annulus twice: the dropped
+    # sectors then form more than one run, and a plane cannot carry it across the shadow
+    n_runs = int(np.count_nonzero(good & ~np.roll(good, 1))) if not np.all(good) else 0
+    if n_runs > 1:
+        return f"the sectors a plane does not fit form {n_runs} separate arcs (a structure across the shadow)"
+    sel = good[sec]
+    s2p = float(np.sum(res[sel] ** 2)) / max(int(np.count_nonzero(sel)) - 3, 1)
+    cov_p = s2p * np.linalg.pinv(A[sel].T @ A[sel])
+    k1 = np.array([c])
+    sub = _Candidates(index=cand.index[k1], centre=cand.centre[k1], radius=cand.radius[k1], area=cand.area[k1],
+                      shadows=cand.shadows, noise=cand.noise)
+    flat = _LocalBackground(origin=np.rint(cand.centre[k1]), eu=np.array([[1.0, 0.0]]), ev=np.array([[0.0, 1.0]]),
+                            umin=-1, a=np.ones((1, 3)), b=np.zeros((1, 3)), edge_gradient=np.zeros((1, 3)),
+                            structure=np.zeros(1), coherence=np.zeros(1), minor=np.zeros(1),
+                            ray_keep=good[None, :])
+
+    def measure(q):
+        bg = np.exp(q[0] + q[1] * X + q[2] * Y)
+        try:
+            trans[sl] = (saved / bg).astype(trans.dtype)
+            return bg, _measure_edges_and_fit(trans, flat, sub, st)
+        finally:
+            trans[sl] = saved
+
+    bg, smeas = measure(coef)
+    if not smeas.ok[0]:
+        return f"partial edge fit failed: {smeas.why[0]}"
+    if not _screen_fits(smeas, sub, flat, st, drange, rej, depth_ref=depth_ref, structure=False):
+        return ""
+    fc = smeas.fits[0]
+    rf = float(np.sqrt(fc[2] * fc[3]))
+    rr = np.hypot(X + cx - fc[0], Y + cy - fc[1])
+    ring = (rr > rf + 2.0) & (rr < rf + 1.0 + st.proximity_margin_px)
+    if np.count_nonzero(ring & (saved < bg * (1.0 - st.segment_depth))) >= 3:
+        return f"dark pixels within {st.proximity_margin_px} px outside the shadow under the plane"
+    # partial edge: the centre block of the 5-parameter (near-circle) fit over the 2-parameter one
+    nr = int(st.n_rays)
+    phi = (np.arange(nr) + 0.5) * (2 * np.pi / nr)
+    kp = _ray_mask(flat, phi)[0]
+    ph = phi[kp]
+    J = np.column_stack([np.cos(ph), np.sin(ph), np.ones_like(ph), np.cos(2 * ph), np.sin(2 * ph)])
+    infl = max(1.0, smeas.n_pts[0] / (np.pi * rf))
+    scale = infl * float(smeas.s2[0]) * nr / max(int(smeas.n_pts[0]), 1) * (ph.size / nr)
+    extra = scale * (np.linalg.pinv(J.T @ J)[:2, :2] - np.linalg.pinv(J[:, :2].T @ J[:, :2]))
+    lam, vec = np.linalg.eigh(0.5 * (extra + extra.T))
+    extra = (vec * np.maximum(lam, 0.0)) @ vec.T
+    # the plane's own uncertainty
+    lam, vec = np.linalg.eigh(cov_p)
+    for li, vi in zip(lam, vec.T):
+        if not li > 0:
+            continue
+        _, mi = measure(coef + np.sqrt(li) * vi)
+        if not mi.ok[0]:
+            return "not determined (a one-sd change of the plane leaves no measurable shadow)"
+        dc = mi.fits[0, :2] - smeas.fits[0, :2]
+        extra += np.outer(dc, dc)
+    # and the plane's misfit next to the shadow: the centre measured again with the plane
+    # corrected by the inner ring's (2 px) mean residual per kept sector (interpolated in angle)
+    inner = sel & (np.hypot(xs, ys) < rin + 2.0)
+    n_in = np.bincount(sec[inner], minlength=12)
+    sres = np.where(good & (n_in > 0), np.bincount(sec[inner], res[inner], minlength=12) / np.maximum(n_in, 1), 0.0)
+    sc = (np.arange(12) + 0.5) * (np.pi / 6) - np.pi
+    f = np.interp(np.arctan2(Y, X), np.concatenate([sc - 2 * np.pi, sc, sc + 2 * np.pi]), np.tile(sres, 3))
+    try:
+        trans[sl] = (saved / (bg * np.exp(f))).astype(trans.dtype)
+        mi = _measure_edges_and_fit(trans, flat, sub, st)
+    finally:
+        trans[sl] = saved
+    if mi.ok[0]:
+        dc = mi.fits[0, :2] - smeas.fits[0, :2]
+        extra += np.outer(dc, dc)
+    meas.extra_cov[c] = extra
+    for f in ("ok", "fits", "n_pts", "rms", "s2", "sums", "qmin", "edge_frac", "edge_shift"):
+        getattr(meas, f)[c] = getattr(smeas, f)[0]
+    meas.normals[c] = smeas.normals[0]
+    meas.n_fits += smeas.n_fits
+    meas.corner.add(c)
+    return None
 
 
 # --------------------------------------------------------------------------- stage 6-7: edges and fits
@@ -1716,6 +1880,9 @@ def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True,
     q1 = np.take_along_axis(q, (k + 1)[..., None], axis=2)[..., 0]
     dq = q1 - q0
     valid &= dq > 0
+    keep = _ray_mask(model, phi)
+    if keep is not None:
+        valid &= keep
     frac = np.where(valid, (level[:, None] - q0) / np.where(dq > 0, dq, 1.0), 0.0)
     dr = (w_in + w_out) / (ns - 1)
     r_edge = r_s[np.arange(nc)[:, None], k] + frac * dr[:, None]
@@ -1750,6 +1917,15 @@ def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True,
                                      np.clip(ey[j] - cm.y0, 0, cm.grad.shape[0] - 1))
         on_edge = valid & (g > st.background_edge_gradient)
     return ex, ey, valid, level, qmin, on_edge, nr, spread2
+
+
+def _ray_mask(model, phi):
+    """(C, nr) rays kept (their 30 deg sector in ``model.ray_keep``), or None (all)."""
+    if model.ray_keep is None:
+        return None
+    ang = np.where(phi > np.pi, phi - 2 * np.pi, phi)
+    sec = np.floor((ang + np.pi) / (2 * np.pi) * 12).astype(np.intp) % 12
+    return np.asarray(model.ray_keep, bool)[:, sec]
 
 
 def _edge_spread2(slope, level, valid, q_in, r_in, radius, dr, st):
@@ -1920,7 +2096,9 @@ def _measure_edges_and_fit(trans, model, cand, st):
         if last_pass:
             edge_frac = np.count_nonzero(on_edge, axis=1) / np.maximum(np.count_nonzero(valid, axis=1), 1)
         n_valid = np.count_nonzero(valid, axis=1)
-        few = ok & (n_valid < st.min_edge_fraction * nr)
+        keep = _ray_mask(model, (np.arange(nr) + 0.5) * (2 * np.pi / nr))
+        n_rays_used = np.count_nonzero(keep, axis=1) if keep is not None else np.full(nc, nr)
+        few = ok & (n_valid < st.min_edge_fraction * n_rays_used)
         _fail(np.nonzero(few)[0], lambda c: f"only {n_valid[c]} of {nr} rays found an edge")
         rows_ = np.nonzero(ok)[0]
         p, err = _fit_rows(ex, ey, valid, rows_, st.ellipse_fitter)
@@ -1933,7 +2111,7 @@ def _measure_edges_and_fit(trans, model, cand, st):
             sig = 1.2533 * ad.sum(axis=1) / np.maximum(sel.sum(axis=1), 1)
             good = sel & (ad <= np.maximum(5.0 * sig, 0.1)[:, None])
             n_good = good.sum(axis=1)
-            redo = np.nonzero((n_good < sel.sum(axis=1)) & (n_good >= st.min_edge_fraction * nr)
+            redo = np.nonzero((n_good < sel.sum(axis=1)) & (n_good >= st.min_edge_fraction * n_rays_used[rows_])
                               & np.all(np.isfinite(p), axis=1))[0]
             redo = np.array([j for j in redo if j not in err], dtype=np.intp)
             if redo.size:
