@@ -1558,6 +1558,24 @@ def _fit_corner(trans, cand, c, theta1, st):
     return _CornerModel(True, "", y0, x0, np.exp(logb), grad, ratio, n, np.concatenate([p, coef]), cov_q,
                         (X.astype(np.float64), Y.astype(np.float64)), sector_res)
 
+def _sector_interp(angle, per_sector):
+    """Values given per 30 deg sector (12, centred at -pi + (k + 0.5) pi / 6) interpolated
+    periodically at ``angle`` [rad]."""
+    sc = (np.arange(12) + 0.5) * (np.pi / 6) - np.pi
+    return np.interp(angle, np.concatenate([sc - 2 * np.pi, sc, sc + 2 * np.pi]), np.tile(per_sector, 3))
+
+
+def _adopt(meas, c, smeas, extra):
+    """Candidate ``c`` of ``meas`` takes the single-candidate measurement ``smeas`` (a corner or
+    partial-edge model's) with the extra centre covariance ``extra``."""
+    meas.extra_cov[c] = extra
+    for f in ("ok", "fits", "n_pts", "rms", "s2", "sums", "qmin", "edge_frac", "edge_shift"):
+        getattr(meas, f)[c] = getattr(smeas, f)[0]
+    meas.normals[c] = smeas.normals[0]
+    meas.n_fits += smeas.n_fits
+    meas.corner.add(c)
+
+
 def _corner_pass(trans, cand, model, meas, deferred, st, drange, rej):
     """Measure the shadows the one-direction background refused (``deferred`` from
     :func:`_screen_fits`) with the corner model (:func:`_fit_corner`): where its misfit on the
@@ -1667,19 +1685,12 @@ def _corner_pass(trans, cand, model, meas, deferred, st, drange, rej):
             continue
         # and the model's misfit next to the shadow: the centre measured again with the
         # background corrected by the inner ring's mean residual per sector (interpolated in angle)
-        sc = (np.arange(12) + 0.5) * (np.pi / 6) - np.pi
-        a_ = np.arctan2(cm.xy[1], cm.xy[0])
-        f = np.interp(a_, np.concatenate([sc - 2 * np.pi, sc, sc + 2 * np.pi]), np.tile(cm.sector_res, 3))
+        f = _sector_interp(np.arctan2(cm.xy[1], cm.xy[0]), cm.sector_res)
         _, mi = measure(cm.bg * np.exp(-f))
         if mi is not None and mi.ok[0]:
             dc = mi.fits[0, :2] - smeas.fits[0, :2]
             extra += np.outer(dc, dc)
-        meas.extra_cov[c] = extra
-        for f in ("ok", "fits", "n_pts", "rms", "s2", "sums", "qmin", "edge_frac", "edge_shift"):
-            getattr(meas, f)[c] = getattr(smeas, f)[0]
-        meas.normals[c] = smeas.normals[0]
-        meas.n_fits += smeas.n_fits
-        meas.corner.add(c)
+        _adopt(meas, c, smeas, extra)
         out.append(c)
     return out
 
@@ -1801,8 +1812,7 @@ def _arc_measure(trans, cand, c, meas, st, drange, depth_ref, rej):
     inner = sel & (np.hypot(xs, ys) < rin + 2.0)
     n_in = np.bincount(sec[inner], minlength=12)
     sres = np.where(good & (n_in > 0), np.bincount(sec[inner], res[inner], minlength=12) / np.maximum(n_in, 1), 0.0)
-    sc = (np.arange(12) + 0.5) * (np.pi / 6) - np.pi
-    f = np.interp(np.arctan2(Y, X), np.concatenate([sc - 2 * np.pi, sc, sc + 2 * np.pi]), np.tile(sres, 3))
+    f = _sector_interp(np.arctan2(Y, X), sres)
     try:
         trans[sl] = (saved / (bg * np.exp(f))).astype(trans.dtype)
         mi = _measure_edges_and_fit(trans, flat, sub, st)
@@ -1811,12 +1821,7 @@ def _arc_measure(trans, cand, c, meas, st, drange, depth_ref, rej):
     if mi.ok[0]:
         dc = mi.fits[0, :2] - smeas.fits[0, :2]
         extra += np.outer(dc, dc)
-    meas.extra_cov[c] = extra
-    for f in ("ok", "fits", "n_pts", "rms", "s2", "sums", "qmin", "edge_frac", "edge_shift"):
-        getattr(meas, f)[c] = getattr(smeas, f)[0]
-    meas.normals[c] = smeas.normals[0]
-    meas.n_fits += smeas.n_fits
-    meas.corner.add(c)
+    _adopt(meas, c, smeas, extra)
     return None
 
 
