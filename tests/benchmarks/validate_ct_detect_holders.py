@@ -132,7 +132,7 @@ def main():
     ap.add_argument("--before", action="store_true",
                     help="also run the detector without the band-merged cores (band_core=False) on the same "
                          "frames: method 'before'")
-    ap.add_argument("--before-setting", default="band_core", choices=("band_core", "grey_moment_screen"),
+    ap.add_argument("--before-setting", default="band_core", choices=("band_core", "grey_moment_screen", "proximity_pixel_outline"),
                     help="the setting switched off for method 'before' (default band_core)")
     args = ap.parse_args()
     st = detect.DetectionSettings(max_corner_misfit=None) if args.no_corner else None

@@ -18,8 +18,9 @@ pytestmark = pytest.mark.ros
 # detector's merged-shadow test refused isolated spheres before its depth-weighted moments (ct_detect.md,
 # "Small shadows"), 6 is one where the identity initialisation used to pick the helix labelled one sphere
 # along (round 19: 12 of 22 instruments; the screw-shifted labellings are now compared explicitly,
-# core/identify.py). The failure left is xfail(strict) below: it turns into a failure the day it is
-# fixed, so this file gets updated then.
+# core/identify.py). Seed 1 has a sphere 6.3 px clear of a pair of merged shadows, which the proximity
+# rule refused until it measured the gap to an elongated blob's own pixels (round 24; ct_detect.md,
+# "Proximity to merged blobs").
 SEEDS = (1, 3, 6)
 GATE = 2.5     # the quality gate's factor between the residual rms and the stated sigma (ct_core.md)
 
@@ -60,10 +61,6 @@ def test_no_clear_sphere_refused_as_merged(cases):
         assert d["missed_reasons"].get("overlap_merged", 0) == 0, (c["seed"], d["missed_reasons"])
 
 
-@pytest.mark.xfail(strict=True, reason="issue 14.3 not met on independent frames: a sphere with a 6 px geometric "
-                                       "gap can have threshold outlines < 4 px from its neighbour's (blur and the "
-                                       "PSF tail grow them): refused by the proximity rule (seed 1: 1 of 454); "
-                                       "see ct_detect.md")
 def test_every_clear_sphere_found(cases):
     for c in cases:
         d = c["detection"]

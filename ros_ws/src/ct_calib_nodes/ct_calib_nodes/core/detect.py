@@ -193,6 +193,11 @@ class DetectionSettings:
     proximity_margin_px : float
         Two shadows whose threshold outlines are closer than this are both
         rejected as ``overlap`` (their blurred edges bias each other).
+    proximity_pixel_outline : bool
+        The gap to a neighbour whose blob is elongated (merged shadows) is measured to its
+        own pixels, not to the circle of its area about its centroid, and blobs of merged
+        shadows (up to 3.5 shadows' area) count as neighbours (False: the circle, and
+        neighbours up to one shadow's size only: the former behaviour).
     border_margin_px : float
         Shadows whose measuring annulus comes closer than this to the image
         border are ``edge_cut``.
@@ -295,6 +300,7 @@ class DetectionSettings:
     direction_blend: bool = False
     grey_moment_screen: bool = True
     arc_pass: bool = True
+    proximity_pixel_outline: bool = True
     max_arc_sector_misfit: float = 1.5
     min_arc_sectors: int = 6
 
@@ -1053,18 +1059,53 @@ def _candidates(trans, bg, st, drange, rej):
                 continue
         rej.add((cx, cy), a, *why)
     # proximity: penumbrae of neighbours interact; compared with every compact blob of
-    # noticeable size (accepted or not, pieces instead of their parents), by centre distance
-    # minus both radii
-    allc = [cents[i] for i in range(stats.shape[0]) if i not in split_parent] + [p[1] for p in pieces]
-    alla = [area[i] for i in range(stats.shape[0]) if i not in split_parent] + [float(p[0][4]) for p in pieces]
+    # noticeable size (accepted or not, pieces instead of their parents) by the gap between the
+    # threshold outlines: centre distance minus both equivalent radii for a round neighbour; for
+    # an elongated one (two shadows merged into one blob, a piece with a bump: moment axis ratio
+    # above max_axis_ratio and above what pixelation gives a round blob of its size) its own
+    # pixels, since the equivalent circle about its centroid reaches past it across its long
+    # axis (a sphere 6-9 px clear of a merged pair was refused at a circle gap of 3.4-3.9 px:
+    # ct_detect.md, "Proximity to merged blobs")
+    comp = [i for i in range(stats.shape[0]) if i not in split_parent]
+    allc = [cents[i] for i in comp] + [p[1] for p in pieces]
+    alla = [area[i] for i in comp] + [float(p[0][4]) for p in pieces]
     allc = np.array(allc, dtype=np.float64).reshape(-1, 2)
     alld = 2.0 * np.sqrt(np.array(alla, dtype=np.float64) / np.pi)
-    others = (alld >= max(3.0, 0.5 * dmin)) & (alld <= dmax)
+    # the neighbours: every compact shadow, as the local backgrounds mask them (up to 3.5 shadows'
+    # area: merged ones too; the former rule counted blobs up to one shadow's size only, so a
+    # sphere next to a merged pair was not tested at all when the expected sizes are narrow)
+    if st.proximity_pixel_outline:
+        others = np.nonzero((alld >= max(3.0, 0.5 * dmin)) & (np.pi * alld ** 2 / 4.0 <= 3.5 * single_area_max))[0]
+    else:
+        others = np.nonzero((alld >= max(3.0, 0.5 * dmin)) & (alld <= dmax))[0]
     oc, od = allc[others], alld[others]
+    shape_of = {}
+
+    def pixels(j):              # (pixel coordinates (N, 2) as col, row; elongated?) of entry j
+        if j not in shape_of:
+            if j < len(comp):
+                i = comp[j]
+                x0, y0, w, h = (int(v) for v in stats[i, :4])
+                blob = labels[y0:y0 + h, x0:x0 + w] == i + 1
+            else:
+                s_, _, blob = pieces[j - len(comp)][:3]
+                x0, y0 = int(s_[0]), int(s_[1])
+            d_eq = 2.0 * np.sqrt(np.count_nonzero(blob) / np.pi)
+            elong = (_moment_axis_ratio(cv2.moments(blob.view(np.uint8), binaryImage=True))
+                     > max(st.max_axis_ratio, 1.0 + _PIXELATION_AXIS_COEF * d_eq ** -1.5))
+            yx = np.argwhere(blob) if elong else None
+            shape_of[j] = (None if yx is None else yx[:, ::-1] + [x0, y0], elong)
+        return shape_of[j]
+
     keep = []
     for (wi, (cx, cy), r0, a) in cand:
-        gap = np.hypot(oc[:, 0] - cx, oc[:, 1] - cy) - r0 - 0.5 * od
-        gap[np.hypot(oc[:, 0] - cx, oc[:, 1] - cy) < 1e-9] = np.inf       # itself
+        dist = np.hypot(oc[:, 0] - cx, oc[:, 1] - cy)
+        gap = dist - r0 - 0.5 * od
+        gap[dist < 1e-9] = np.inf       # itself
+        for k in np.nonzero(gap < st.proximity_margin_px)[0] if st.proximity_pixel_outline else ():
+            pix, elong = pixels(int(others[k]))
+            if elong:                   # its nearest pixel centre, whose outline is 0.5 px further
+                gap[k] = float(np.min(np.hypot(pix[:, 0] - cx, pix[:, 1] - cy))) - r0 - 0.5
         g = float(np.min(gap)) if gap.size else np.inf
         if g < st.proximity_margin_px:
             rej.add((cx, cy), a, "overlap", f"gap {max(g, 0.0):.1f} px to a neighbouring shadow "
