@@ -230,7 +230,7 @@ def _track_correlation(z, table, known=None):
 
 
 def estimate_noise(residuals, sigma, view_index, n_params: int, view_sd_px=None,
-                   sphere_index=None, centre_jac=None, centre_var=None) -> NoiseModel:
+                   sphere_index=None, centre_jac=None, centre_var=None, track: bool = True) -> NoiseModel:
     """Noise model from the residuals of a weighted least-squares fit.
 
     Parameters
@@ -254,9 +254,10 @@ def estimate_noise(residuals, sigma, view_index, n_params: int, view_sd_px=None,
         offset of each observation's own sphere centre.
     centre_var : ndarray of shape (N,), optional
         Stated variance of each calibrated centre coordinate [m^2]. With ``centre_jac``, the
-        track correlation is estimated net of what these errors put into the residuals (the same
-        offset in every view of a sphere, correlated at every lag; the centre-uncertainty term
-        carries it, so it is not counted twice).
+        per-axis factors, the per-projection shift and the track correlation are estimated net of
+        what these errors put into the residuals (the same offset in every view of a sphere,
+        correlated at every lag; the centre-uncertainty term carries it, so it is not counted
+        twice).
     """
     r = np.asarray(residuals, dtype=float)
     q = r.size // 2
@@ -274,9 +275,27 @@ def estimate_noise(residuals, sigma, view_index, n_params: int, view_sd_px=None,
         # within-projection scatter: n_v means are used up, and about half the parameters
         # (they act on both axes) are paid by each axis
         dof_w = max(q - n_v - 0.5 * n_params, 1.0)
-        f2 = float(np.sum(w * dev * dev)) / dof_w if n_v < q else float(np.sum(w * ra * ra)) / max(q - 0.5 * n_params, 1)
+        ss = float(np.sum(w * dev * dev)) if n_v < q else float(np.sum(w * ra * ra))
+        cmm_m2 = np.zeros(n_v)
+        if centre_jac is not None and centre_var is not None and sphere_index is not None and n_v < q:
+            # net of the calibrated centres' stated errors: sphere s's error puts the same offset
+            # jc_i . dc_s into each of its observations, one per projection, so within a projection
+            # they are independent with variance a_i = |jc_i|^2 u_s^2. Their expected share of the
+            # weighted within-projection scatter, sum w a - sum_v (sum_v w^2 a) / W_v, scaled like
+            # the noise's by the fit's share (dof_w / (q - n_v)), is taken out: the centre-uncertainty
+            # term of the covariance carries it, and counted in the factor too it was counted twice
+            # (rendered Monte Carlo at 0.4 mm pixels, 1 um CMM errors: factors up to 1.97 and
+            # instrument z sd 0.46-0.94; ct_core.md "Uncertainty model"). At least a ninth of the raw
+            # scatter is kept (a reference file that overstates its centres' uncertainty cannot
+            # drive the factor to zero).
+            jc = np.asarray(centre_jac, dtype=float)[:, a * q:(a + 1) * q]
+            a_i = np.sum(jc * jc, axis=0) * np.asarray(centre_var, dtype=float)[np.asarray(sphere_index)]
+            cmm_m2 = np.bincount(vid, w * w * a_i, n_v) / wsum ** 2       # E[mean_v^2] from the centres
+            e_cmm = float(np.sum(w * a_i)) - float(np.sum(cmm_m2 * wsum))
+            ss = max(ss - e_cmm * dof_w / max(q - n_v, 1), ss / 9.0)
+        f2 = ss / dof_w if n_v < q else ss / max(q - 0.5 * n_params, 1)
         factors.append(np.sqrt(max(f2, 0.0)))
-        if sphere_index is not None and n_v >= 8 and f2 > 0:
+        if track and sphere_index is not None and n_v >= 8 and f2 > 0:
             if table is None:
                 table = _track_table(sphere_index, vid, n_v)
             known = None
@@ -299,7 +318,7 @@ def estimate_noise(residuals, sigma, view_index, n_params: int, view_sd_px=None,
             # is kept only when it is significant (more than 2 standard errors of its estimate,
             # sqrt(2 / n_v) times the noise of a projection mean): with none in the data the
             # estimate scatters about 0 and would inflate the covariance by chance.
-            excess = mean ** 2 - f2 / wsum
+            excess = mean ** 2 - f2 / wsum - cmm_m2
             t2 = float(np.sum(excess)) / max(n_v - 0.5 * n_params, 1.0)
             se = np.sqrt(2.0 / n_v) * float(np.mean(f2 / wsum))
             taus.append(np.sqrt(t2) if t2 > 2.0 * se else 0.0)
