@@ -29,6 +29,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")   # one BLAS thread for both 
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "..", "ros_ws", "src", "ct_calib_nodes"))
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "ct_core"))
 
 from ct_calib_nodes.core.geometry import DetectorSpec  # noqa: E402
 from ct_calib_nodes.core.location_noise import N_BINS, location_class  # noqa: E402
@@ -38,8 +39,7 @@ from ct_calib_nodes.core.scenario import default_campaign  # noqa: E402
 from ct_calib_nodes.core.simulate_obs import simulate_observations  # noqa: E402
 from ct_calib_nodes.core.static_solver import solve_static  # noqa: E402
 
-SIGMA_PX = 0.05
-CONTOUR_RADIUS_M = 1.1e-3
+from ct_core_settings import CONTOUR_RADIUS_M, SIGMA_PX  # noqa: E402  (the CT core tests' simulated detector)
 
 
 def main() -> None:

@@ -6,7 +6,9 @@ on that side was refused as `overlap` (independent 384 px recordings, seed 1: a 
 of a merged pair, at a circle gap of 3.5 px; ct_detect.md, "Proximity to merged blobs"). The gap to
 an elongated neighbour is now measured to its pixels. Synthetic frames: exact chords through steel
 spheres of 5 px radius, supersampled 4 x 4, Gaussian blur, Gaussian noise; the third sphere on the
-pair's perpendicular bisector at a given geometric gap to the pair.
+pair's perpendicular bisector at a given geometric gap to the pair. A second defect showed here: the
+rule counted neighbours only up to one shadow's size, so with a narrow expected size range a
+merged pair was no neighbour at all.
 """
 
 import numpy as np
@@ -42,11 +44,17 @@ def _frame(gap_px, seed, blur=0.7, noise=0.01, shape=(96, 128)):
     return t.astype(np.float32), np.array(centres[2])
 
 
+# expected shadow diameters: narrow (the merged pair is larger than one shadow may be) and wide (as
+# for an object deep along the beam: the pair is within one shadow's size range)
+RANGES = [(9.0, 11.0), (7.0, 16.0)]
+
+
+@pytest.mark.parametrize("drange", RANGES)
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("gap_px", [6.5, 8.0])
-def test_sphere_clear_of_a_merged_pair_is_measured(gap_px, seed):
+def test_sphere_clear_of_a_merged_pair_is_measured(gap_px, seed, drange):
     frame, c_true = _frame(gap_px, seed)
-    det = detect.detect_spheres(frame, encoding="32FC1", diameter_px_range=(9.0, 11.0))
+    det = detect.detect_spheres(frame, encoding="32FC1", diameter_px_range=drange)
     d = np.linalg.norm(det.centre_px - c_true, axis=1) if len(det) else np.array([np.inf])
     k = int(np.argmin(d))
     assert d[k] < 0.5, (det.rejected.reason, det.rejected.detail)
@@ -58,22 +66,27 @@ def test_sphere_clear_of_a_merged_pair_is_measured(gap_px, seed):
     assert "overlap" in det.rejected.reason
 
 
+@pytest.mark.parametrize("drange", RANGES)
 @pytest.mark.parametrize("seed", [0, 1])
-def test_sphere_near_a_merged_pair_is_still_refused(seed):
+def test_sphere_near_a_merged_pair_is_still_refused(seed, drange):
     # 3 px geometric gap: the threshold outlines (about 2 px apart) are closer than the 4 px margin
     frame, c_true = _frame(3.0, seed)
-    det = detect.detect_spheres(frame, encoding="32FC1", diameter_px_range=(9.0, 11.0))
+    det = detect.detect_spheres(frame, encoding="32FC1", diameter_px_range=drange)
     assert len(det) == 0, det.centre_px
     near = [dt for (x, y), r, dt in zip(det.rejected.centre_px, det.rejected.reason, det.rejected.detail)
             if np.hypot(x - c_true[0], y - c_true[1]) < R_PX]
     assert near and near[0].startswith("gap"), near
 
 
-def test_the_former_rule_refused_it():
-    """The frames exercise the change: with the equal-area circle (the former rule) the clear
-    sphere is refused as too close."""
-    frame, c_true = _frame(6.5, 0)
+def test_the_former_rule_got_both_wrong():
+    """The frames exercise the change. The former rule (equal-area circles, neighbours up to one
+    shadow's size): with a wide size range it refused the sphere 6.5 px clear of the pair (the
+    circle reaches past the pair), with a narrow one it accepted the sphere 3 px from it (the pair,
+    larger than one shadow, was no neighbour)."""
     st = detect.DetectionSettings(proximity_pixel_outline=False)
-    det = detect.detect_spheres(frame, encoding="32FC1", diameter_px_range=(9.0, 11.0), settings=st)
-    assert len(det) == 0
-    assert any(dt.startswith("gap") for dt in det.rejected.detail)
+    frame, _ = _frame(6.5, 0)
+    det = detect.detect_spheres(frame, encoding="32FC1", diameter_px_range=RANGES[1], settings=st)
+    assert len(det) == 0 and any(dt.startswith("gap") for dt in det.rejected.detail), det.rejected.detail
+    frame, c_true = _frame(3.0, 0)
+    det = detect.detect_spheres(frame, encoding="32FC1", diameter_px_range=RANGES[0], settings=st)
+    assert len(det) == 1 and np.linalg.norm(det.centre_px[0] - c_true) < 0.5
