@@ -1092,7 +1092,7 @@ def _candidates(trans, bg, st, drange, rej):
                 x0, y0 = int(s_[0]), int(s_[1])
             d_eq = 2.0 * np.sqrt(np.count_nonzero(blob) / np.pi)
             elong = (_moment_axis_ratio(cv2.moments(blob.view(np.uint8), binaryImage=True))
-                     > max(st.max_axis_ratio, 1.0 + _PIXELATION_AXIS_COEF * d_eq ** -1.5))
+                     > max(st.max_axis_ratio, _pixelation_axis_bound(d_eq)))
             yx = np.argwhere(blob) if elong else None
             shape_of[j] = (None if yx is None else yx[:, ::-1] + [x0, y0], elong)
         return shape_of[j]
@@ -1136,6 +1136,11 @@ def _candidates(trans, bg, st, drange, rej):
 _PIXELATION_AXIS_COEF = 6.0
 
 
+def _pixelation_axis_bound(d_eq):
+    """Largest binary moment axis ratio pixelation gives a round blob of equivalent diameter ``d_eq`` [px]."""
+    return 1.0 + _PIXELATION_AXIS_COEF * d_eq ** -1.5
+
+
 def _moment_axis_ratio(mom) -> float:
     """sqrt(major / minor) eigenvalue of the second central moments (a ``cv2.moments`` dict)."""
     if mom["m00"] <= 0:
@@ -1157,7 +1162,7 @@ def _merged_by_moments(m_ratio, de, blob, ratio, st):
     when its depth-weighted axis ratio is within the limit. Two merged shadows give >= 1.4
     (binary) and >= 1.5 (depth) even overlapping by 2 px."""
     why = ("overlap", f"blob moment axis ratio {m_ratio:.2f} > {st.max_axis_ratio}: merged shadows")
-    if not st.grey_moment_screen or m_ratio > 1.0 + _PIXELATION_AXIS_COEF * de ** -1.5:
+    if not st.grey_moment_screen or m_ratio > _pixelation_axis_bound(de):
         return why
     g_ratio = _moment_axis_ratio(cv2.moments(np.where(blob, np.maximum(1.0 - ratio, 0.0), 0.0).astype(np.float32)))
     if g_ratio <= st.max_axis_ratio:

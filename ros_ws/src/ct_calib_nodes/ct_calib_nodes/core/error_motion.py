@@ -258,10 +258,9 @@ def solve_error_motion(obs_k: CentreObservations, static, detector: DetectorSpec
     # term is in the map's joint covariance); dx_R, dy_R, dz_R move every centre alike, so their
     # columns are each observation's derivatives with respect to its own sphere's position
     u_c = None if static_res is None else static_res.centre_uncertainty_m
-    noise = estimate_noise(r, sigma, obs.view_index, 6, view_sd_px=view_sd_px,
-                           sphere_index=None if u_c is None else obs.sphere_index,
-                           centre_jac=None if u_c is None else jt[0:3],
-                           centre_var=None if u_c is None else np.asarray(u_c, dtype=float) ** 2, track=False)
+    centres = {} if u_c is None else dict(sphere_index=obs.sphere_index, centre_jac=jt[0:3],
+                                          centre_var=np.asarray(u_c, dtype=float) ** 2)
+    noise = estimate_noise(r, sigma, obs.view_index, 6, view_sd_px=view_sd_px, track=False, **centres)
     w = 1.0 / axis_weights_sigma(sigma, q, noise) if loss == "linear" else res.weights
     normals = axis_normals(jt, 1.0 / w)
     cov = covariance_from_jacobian(jt.T, r, w, cond_limit=cond_limit, normal=normals[0] + normals[1])
