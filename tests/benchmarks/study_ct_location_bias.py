@@ -48,9 +48,6 @@ def case_detections(work, seed):
     id_index = {int(i): k for k, i in enumerate(ids)}
     w = np.array(truth["w"])
     inst = gen.instrument_from(w, truth)
-    n = inst.r_det[:, 2]
-    depth = float(n @ inst.w[1:4])
-    pp = inst.project(n[None, :])[0]
     _, _, kind = ck.labelling(np.array(st["x"]), w, c_file)
     legit = np.arange(len(ids))[::-1] if kind == "upside_down" else np.arange(len(ids))
     c_true = np.array(truth["centres_true_of_m"])
@@ -68,7 +65,7 @@ def case_detections(work, seed):
                 continue
             k = id_index[sid]
             kk = legit[k]
-            e_true = pp + (1 + (b * inst.pitch_m / depth) ** 2) * (cr[kk] - pp)
+            e_true = inst.ellipse_centre_px(cr[kk], b)
             rows.append((col, row, k, alpha, jv, s, b, *e_true, d[kk, 0] / np.linalg.norm(d[kk]), np.sign(d[kk, 2])))
     a = np.array(rows, float)
     phys = truth["physics"]

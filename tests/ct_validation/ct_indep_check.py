@@ -128,9 +128,7 @@ def detection_check(frames, truth, legit, id_index, w_true):
     but misidentified (identity). Visible = shadow inside the detector, its gap to the nearest other shadow >= CLEAR_GAP_PX (computed
     with upper bounds of the shadow radii); spheres closer than that (but apart) are counted separately."""
     inst = gen.instrument_from(w_true, truth)
-    n = inst.r_det[:, 2]
-    depth = float(n @ inst.w[1:4])                                        # source to detector plane
-    pp = inst.project(n[None, :])[0]                                      # principal point
+    pp = inst.principal_point_px
     alphas = np.array([v["alpha"] for v in truth["views"]])
     out = {"frames": len(frames), "visible": 0, "found_visible": 0, "close": 0, "found_close": 0, "accepted": 0,
            "false": 0, "misidentified": 0, "missed": [], "false_at": [], "missed_reasons": {},
@@ -155,7 +153,7 @@ def detection_check(frames, truth, legit, id_index, w_true):
             if sid not in id_index or legit[id_index[sid]] != k:
                 out["misidentified"] += 1                     # found, but named as another sphere
             found[k] = True
-            e_true = pp + (1 + (b * inst.pitch_m / depth) ** 2) * (cr[k] - pp)    # ellipse centre (ct_core.md)
+            e_true = inst.ellipse_centre_px(cr[k], b)
             e = np.array([col, row]) - e_true
             errs.append(e)
             sig.append(s)

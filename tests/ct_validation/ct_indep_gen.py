@@ -98,6 +98,19 @@ class Instrument:
         cx, cy = (self.cols - 1) / 2.0, (self.rows - 1) / 2.0
         return np.column_stack([cx + x @ r[:, 0] / self.pitch_m, cy - x @ r[:, 1] / self.pitch_m])
 
+    @property
+    def principal_point_px(self):
+        """Foot of the perpendicular from the source on the detector [col, row]."""
+        return self.project(self.r_det[:, 2][None, :])[0]
+
+    def ellipse_centre_px(self, centre_px, semi_minor_px):
+        """True centre of a sphere's silhouette ellipse [col, row]: E = P + (1 + (b / D)^2) (C - P),
+        C its centre's projection [px], b the shadow's semi-minor axis [px], P the principal point,
+        D the source-to-detector distance (ct_calib_nodes doc/ct_core.md)."""
+        n = self.r_det[:, 2]
+        pp = self.principal_point_px
+        return pp + (1 + (semi_minor_px * self.pitch_m / float(n @ self.w[1:4])) ** 2) * (np.asarray(centre_px) - pp)
+
 
 @dataclasses.dataclass
 class Tube:

@@ -41,9 +41,6 @@ for seed in a.seeds:
     fr = np.load(f"{FRAMES}/{seed}.npz")
     w_true = np.array(truth["w"])
     ginst = gen.instrument_from(w_true, truth)
-    n = ginst.r_det[:, 2]
-    depth = float(n @ ginst.w[1:4])
-    pp = ginst.project(n[None, :])[0]
     alphas = np.array([v["alpha"] for v in truth["views"]])
     flat = inst.flat_field()
     vis_s = found_s = false_s = 0
@@ -75,7 +72,7 @@ for seed in a.seeds:
                 continue
             found[k] = True
             b = det.semi_axes_px[m, 1]
-            e_true = pp + (1 + (b * inst.detector.pixel_pitch_m / depth) ** 2) * (cr[k] - pp)
+            e_true = ginst.ellipse_centre_px(cr[k], b)
             e = np.array([col, row]) - e_true
             rows_out.append({"seed": seed, "view": j, "sphere": k, "vis": bool(vis[k]), "err": e.tolist(),
                              "std": std[m].tolist(), "corner": bool(corner[m]),
