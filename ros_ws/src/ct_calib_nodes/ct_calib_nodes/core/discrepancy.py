@@ -63,6 +63,9 @@ class Dataset:
     unit : str, the residual unit ("px").
     rms_rows : (n,) bool or None: the rows the fit and held-out RMS are stated over (all when None; an
         adapter with residual blocks in other units, e.g. tracker readings in um, keeps them to ``unit``).
+    shared_shift : estimate a shift shared by each group (the floor's ``tau``; default). An adapter turns it
+        off where no shared shift is physical and its groups are too small for the estimate (the Pixel
+        Probe: three cameras per station; see :func:`noise_floor`).
     """
 
     residual: np.ndarray
@@ -76,6 +79,7 @@ class Dataset:
     empirical: dict = field(default_factory=dict)
     unit: str = "px"
     rms_rows: np.ndarray | None = None
+    shared_shift: bool = True
 
     def rms(self, r) -> float:
         """RMS of a residual vector over ``rms_rows`` [unit]."""
@@ -137,7 +141,13 @@ def _mad(x):
 
 
 def noise_floor(ds: Dataset) -> Floor:
-    """Noise floor from the data (see module docstring)."""
+    """Noise floor from the data (see module docstring).
+
+    The shared part comes from the differences of neighbouring group means, which cancel smooth structure
+    only when neighbouring groups are neighbours along it (consecutive projections). With few members per
+    group and groups that jump across the structure's axis (a serpentine grid of stations), an effect
+    linear in position enters those differences, is taken for shared noise and, subtracted from the total,
+    leaves an independent floor too small: with ``ds.shared_shift`` off the whole scale is independent."""
     z = ds.residual / ds.sigma
     n_c = int(ds.component.max()) + 1
     i, j = ds.neighbours[:, 0], ds.neighbours[:, 1]
@@ -153,7 +163,7 @@ def noise_floor(ds: Dataset) -> Floor:
         means = np.bincount(gi, z[rows]) / cnt
         nbar = float(np.mean(cnt))
         t2 = 0.0
-        if gu.size >= 8:
+        if ds.shared_shift and gu.size >= 8:
             s_m2 = (_mad(np.diff(means)) ** 2) / 2.0
             t2 = (s_m2 - s_tot ** 2 / nbar) / max(1.0 - 1.0 / nbar, 1e-9)
             se = np.sqrt(2.0 / gu.size) * s_m2 * 1.6            # MAD-based variance: ~1.6x the normal SE

@@ -492,7 +492,11 @@ def build(result: CalibrationResult, camera_info: dict, n_folds: int = 5):
     rms_rows[:n_cam] = True
     ds = Dataset(residual=residual, jac=np.array(rows["J"]), nominal_names=names, sigma=np.array(rows["sig"]),
                  component=comp, group=st_of, neighbours=np.array(pairs, int), fold=fold,
-                 empirical={"station order (time)": emp_t, "sensor field": emp_f}, unit="px", rms_rows=rms_rows)
+                 empirical={"station order (time)": emp_t, "sensor field": emp_f}, unit="px", rms_rows=rms_rows,
+                 # no shift is shared by a station's three cameras in pixels (a station's 3-D error moves
+                 # each camera's disc its own way), and three members per station are too few to estimate
+                 # one: an effect linear in the stage position was taken for it (discrepancy.noise_floor)
+                 shared_shift=False)
     tk_rows = np.where(comp >= 2)[0]
     tk_idx = {(int(st_of[r]), int(comp[r])): r for r in tk_rows}
     cands = []
