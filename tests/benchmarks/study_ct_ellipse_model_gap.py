@@ -93,17 +93,20 @@ def analytic(seed, r_m=0.0015, z_m=0.33, blur=0.7, n=24, oversample=8, sdd=1.048
         j = int(np.argmin(dj)) if len(dj) else -1
         if j < 0 or dj[j] > 2.0:                           # not detected (refused): not scored
             continue
-        b = det.semi_axes_px[j][1]
-        lo, hi = 1e-9, 1.2 * np.arcsin(r_m / dist)
-        for _ in range(80):                                # the cone whose section has the measured b
-            mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if cone(mid)[1] < b else (lo, mid)
-        rows_.append((p_px, float((det.centre_px[j] - c0) @ e_hat), cone(lo)[0], cone(np.arcsin(r_m / dist))[0]))
-    p_px, e_det, e_b, e_sil = (np.array(x) for x in zip(*rows_))
+        e_of_b = []
+        for b in (det.semi_axes_px[j][1], det.semi_axes_px[j][1] + det.level_shift_px):
+            lo, hi = 1e-9, 1.2 * np.arcsin(r_m / dist)
+            for _ in range(80):                            # the cone whose section has this b
+                mid = 0.5 * (lo + hi)
+                lo, hi = (mid, hi) if cone(mid)[1] < b else (lo, mid)
+            e_of_b.append(cone(lo)[0])
+        rows_.append((p_px, float((det.centre_px[j] - c0) @ e_hat), *e_of_b, cone(np.arcsin(r_m / dist))[0]))
+    p_px, e_det, e_fit, e_b, e_sil = (np.array(x) for x in zip(*rows_))
 
     def k(y):
         return float(np.sum(y * p_px) / np.sum(p_px ** 2) * 1e6)
-    return {"seed": seed, "blur_px": blur, "n": len(p_px), "detected_minus_cone_of_b_ppm": k(e_det - e_b),
+    return {"seed": seed, "blur_px": blur, "n": len(p_px), "level_shift_px": float(det.level_shift_px),
+            "detected_minus_cone_of_fitted_b_ppm": k(e_det - e_fit), "detected_minus_cone_of_b_ppm": k(e_det - e_b),
             "detected_minus_silhouette_ppm": k(e_det - e_sil), "cone_of_b_minus_silhouette_ppm": k(e_b - e_sil),
             "se_ppm": float(np.std(e_det - e_b) / np.sqrt(np.sum(p_px ** 2)) * 1e6)}
 
@@ -169,7 +172,9 @@ def main():
     if a.analytic:
         res = [analytic(int(s), blur=b) for b in a.blur for s in a.seeds.split(",")]
         for o in res:
-            print(f"seed {o['seed']} blur {o['blur_px']:.1f}: detected - cone(b measured) "
+            print(f"seed {o['seed']} blur {o['blur_px']:.1f}: detected - cone(b fitted) "
+                  f"{o['detected_minus_cone_of_fitted_b_ppm']:+.2f} ppm, level shift {o['level_shift_px']:.3f} px, "
+                  f"detected - cone(b fitted + shift) "
                   f"{o['detected_minus_cone_of_b_ppm']:+.2f} ppm (se {o['se_ppm']:.2f}), detected - silhouette "
                   f"{o['detected_minus_silhouette_ppm']:+.2f}, cone(b measured) - silhouette {o['cone_of_b_minus_silhouette_ppm']:+.2f}")
         print(json.dumps({"analytic": res}))

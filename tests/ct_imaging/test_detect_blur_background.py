@@ -69,4 +69,4 @@ def test_edge_spread_estimated_from_the_shadow(blur, monkeypatch):
     monkeypatch.setattr(D, "_edge_spread2", spy)
     centre(scene(0.0, 0.0, blur), None)
     true = np.sqrt(blur ** 2 + 1.0 / 12.0)
-    assert abs(np.sqrt(got[0]) / true - 1.0) < 0.12, (np.sqrt(got[0]), true)
+    assert abs(np.sqrt(got[0][0]) / true - 1.0) < 0.12, (np.sqrt(got[0][0]), true)

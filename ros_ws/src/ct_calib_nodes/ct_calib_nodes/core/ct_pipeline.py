@@ -438,7 +438,7 @@ class FrameResult:
     reason: tuple             # (M,)
     centre_px: np.ndarray     # (M, 2)
     sigma_px: np.ndarray      # (M,)
-    semi_axes_px: np.ndarray  # (M, 2)
+    semi_axes_px: np.ndarray  # (M, 2) the cone section's: fitted + the detector's level shift
     angle_rad: np.ndarray     # (M,)
     fit_rms_px: np.ndarray    # (M,)
 
@@ -589,7 +589,10 @@ class FrameProcessor:
             reason=tuple(["" if r == "ok" else r for r in reasons] + [f"{r}: {d}" for r, d in zip(rej.reason, rej.detail)]),
             centre_px=np.concatenate([np.asarray(det.centre_px).reshape(-1, 2), np.asarray(rej.centre_px).reshape(-1, 2)]),
             sigma_px=np.concatenate([sigma, np.full(nr, np.nan)]),
-            semi_axes_px=np.concatenate([np.asarray(det.semi_axes_px).reshape(-1, 2), np.full((nr, 2), np.nan)]),
+            # the semi-axes of the cone section the centre belongs to: the fitted ellipse's plus the
+            # blur's inward level shift (detect.FrameDetections.level_shift_px; the ellipse-centre model)
+            semi_axes_px=np.concatenate([np.asarray(det.semi_axes_px).reshape(-1, 2)
+                                         + float(getattr(det, "level_shift_px", 0.0)), np.full((nr, 2), np.nan)]),
             angle_rad=np.concatenate([np.asarray(det.angle_rad).reshape(-1), np.full(nr, np.nan)]),
             fit_rms_px=np.concatenate([np.asarray(det.fit_rms_px).reshape(-1), np.full(nr, np.nan)]))
 

@@ -396,6 +396,11 @@ class FrameDetections:
     on_corner : ndarray of shape (M,), bool
         Measured with the corner background model (two straight steps; the one-direction
         model did not hold round this shadow).
+    level_shift_px : float
+        How far inside the unblurred shadow's iso-level contour the blur moved the edge level
+        crossing, for the frame's median ball [px] (0 when the edge spread is not measured). The
+        fitted centre belongs to that contour, a cone section whose semi-axes are
+        ``semi_axes_px + level_shift_px``: what the ellipse-centre model needs (ct_core.md).
     """
 
     centre_px: np.ndarray
@@ -417,6 +422,7 @@ class FrameDetections:
     on_corner: np.ndarray | None = None
     frame_noise: float = float("nan")
     frame_direction_rad: float = float("nan")
+    level_shift_px: float = 0.0
 
     def __len__(self):
         return self.centre_px.shape[0]
@@ -770,7 +776,8 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
     accepted = _centre_uncertainty(accepted, meas, model, st)                             # 8 uncertainty
     out = _assemble(accepted, rej, meas.n_fits, sdd_px, principal_point_px, trans.shape, hot, "",
                     meas=meas, cand=cand)
-    out = replace(out, frame_noise=float(noise), frame_direction_rad=float(cand.frame_direction))
+    out = replace(out, frame_noise=float(noise), frame_direction_rad=float(cand.frame_direction),
+                  level_shift_px=float(meas.level_shift))
     clock.lap("uncertainty")
     return out
 
@@ -1889,6 +1896,7 @@ class _Measurement:
     edge_shift: np.ndarray  # (C, 2) centre minus the centre fitted without background-edge points
     extra_cov: np.ndarray = None  # (C, 2, 2) added to the centre covariance (corner model's own)
     corner: set = None      # candidates measured with the corner model
+    level_shift: float = 0.0  # the blur's inward shift of the level crossing [px] (_edge_spread2)
 
 
 def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True, spread2=None):
@@ -1937,8 +1945,9 @@ def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True,
     frac = np.where(valid, (level[:, None] - q0) / np.where(dq > 0, dq, 1.0), 0.0)
     dr = (w_in + w_out) / (ns - 1)
     r_edge = r_s[np.arange(nc)[:, None], k] + frac * dr[:, None]
+    level_shift = None
     if first and spread2 is None:
-        spread2 = _edge_spread2(dq / dr[:, None], level, valid, q_in, r_s[:, n_in // 2], radius, dr, st)
+        spread2, level_shift = _edge_spread2(dq / dr[:, None], level, valid, q_in, r_s[:, n_in // 2], radius, dr, st)
     if spread2:
         # the detector blurs the product shadow x background; dividing by the (blurred)
         # background leaves the shadow moved by -spread^2 grad ln B (first order in the
@@ -1967,7 +1976,7 @@ def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True,
                     g[j] = _bilinear(cm.grad, np.clip(ex[j] - cm.x0, 0, cm.grad.shape[1] - 1),
                                      np.clip(ey[j] - cm.y0, 0, cm.grad.shape[0] - 1))
         on_edge = valid & (g > st.background_edge_gradient)
-    return ex, ey, valid, level, qmin, on_edge, nr, spread2
+    return ex, ey, valid, level, qmin, on_edge, nr, spread2, level_shift
 
 
 def _ray_mask(model, phi):
@@ -1980,8 +1989,9 @@ def _ray_mask(model, phi):
 
 
 def _edge_spread2(slope, level, valid, q_in, r_in, radius, dr, st):
-    """Variance [px^2] of the detector's edge spread (blur and pixel aperture together) from the
-    shadows' own edges, or ``st.edge_spread_px`` squared when set (0 switches the correction off).
+    """(variance [px^2] of the detector's edge spread (blur and pixel aperture together) from the
+    shadows' own edges, or ``st.edge_spread_px`` squared when set (0 switches the correction off);
+    the level shift [px]).
 
     A step of height h blurred by a Gaussian of sd s rises at h / (s sqrt(2 pi)) at its half-way
     point; the median over every ray of the frame of that "apparent" s (robust to band edges and
@@ -1989,15 +1999,22 @@ def _edge_spread2(slope, level, valid, q_in, r_in, radius, dr, st):
     ball). That part is taken out with the frame's median ball: attenuation per px from the
     inner shadow level ``q_in`` at ``r_in``, radius ``radius``; the 1-D profile is blurred for a
     grid of s and the apparent s of each (its slope taken over the rays' sample spacing ``dr``,
-    as measured) is matched to the measured one."""
+    as measured) is matched to the measured one.
+
+    The level shift: how far inside the unblurred shadow's iso-level contour the blurred shadow
+    crosses the same level, for the frame's median ball at the matched spread (0 where no spread
+    is matched). Every iso-level contour of a ball is a cone section; the blur moves the crossing
+    inward by about the same number of pixels all round, which shrinks the fitted axes but leaves
+    the centre where that cone's section has it, so the section's semi-minor axis is the fitted
+    one plus this shift (ct_core.md, "z_R lean")."""
     if st.edge_spread_px is not None:
-        return float(st.edge_spread_px) ** 2
+        return float(st.edge_spread_px) ** 2, 0.0
     h = (1.0 - level) / st.edge_level                    # shadow depth of each candidate
     with np.errstate(divide="ignore", invalid="ignore"):
         s = h[:, None] / (np.sqrt(2.0 * np.pi) * slope)
     good = valid & np.isfinite(s) & (s > 0)
     if np.count_nonzero(good) < 16:
-        return 0.0
+        return 0.0, 0.0
     s_app = float(np.median(s[good]))
     rows_ = good.any(axis=1)
     R = float(np.median(radius[rows_]))
@@ -2008,7 +2025,7 @@ def _edge_spread2(slope, level, valid, q_in, r_in, radius, dr, st):
     f_in = float(np.median(r_in[rows_] / radius[rows_]))
     h_dr = 0.5 * float(np.median(dr[rows_]))
     if not (R > 2.0 and mu > 0 and np.isfinite(mu)):
-        return s_app ** 2
+        return s_app ** 2, 0.0
     # 1-D model of the ray profile near the edge, blurred (by FFT) for a grid of s
     dx = 0.02
     x = np.arange(-R * (1.0 - f_in) - 2.0, 10.0, dx)      # distance outside the edge [px]
@@ -2035,13 +2052,21 @@ def _edge_spread2(slope, level, valid, q_in, r_in, radius, dr, st):
     # the correction off, e.g. weakly absorbing balls 20 px across)
     ok = np.isfinite(app)
     if np.count_nonzero(ok) < 2:
-        return s_app ** 2
+        return s_app ** 2, 0.0
     a_ok, s_ok = app[ok], sig[ok]
     i0 = int(np.argmin(a_ok))
     a_ok, s_ok = np.maximum.accumulate(a_ok[i0:]), s_ok[i0:]
     if s_app <= a_ok[0] or a_ok.size < 2:
-        return 0.0
-    return float(np.interp(s_app, a_ok, s_ok)) ** 2
+        return 0.0, 0.0
+    s_fit = float(np.interp(s_app, a_ok, s_ok))
+    # the crossing to a fraction of the grid step, and the unblurred ball's crossing of the same level
+    k = np.clip(x.size - 2 - np.argmax(cross[:, ::-1], axis=1), 0, x.size - 2)
+    b0, b1 = b_all[np.arange(sig.size), k], b_all[np.arange(sig.size), k + 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xc_f = x[k] + np.clip((lev - b0) / (b1 - b0), 0.0, 1.0) * dx
+        x_iso = np.sqrt(np.clip(R * R - (np.log(np.clip(lev, 1e-9, 1.0)) / (2.0 * mu)) ** 2, 0.0, None)) - R
+    shift = x_iso - xc_f
+    return s_fit ** 2, float(np.interp(s_fit, sig[ok], shift[ok]))
 
 
 
@@ -2130,6 +2155,7 @@ def _measure_edges_and_fit(trans, model, cand, st):
     shift = np.zeros((nc, 2))
     edge_frac = np.zeros(nc)
     level = qmin = spread2 = None
+    level_shift = 0.0
     n_fits = 0
 
     def _fail(rows_, msg_of):
@@ -2140,10 +2166,11 @@ def _measure_edges_and_fit(trans, model, cand, st):
     for pas in range(int(st.n_passes)):
         first = pas == 0
         last_pass = pas == int(st.n_passes) - 1
-        ex, ey, valid, level, qm, on_edge, nr, spread2 = _edge_points(trans, model, centre, radius, st, first,
-                                                                      level, want_edge=last_pass, spread2=spread2)
+        ex, ey, valid, level, qm, on_edge, nr, spread2, lsh = _edge_points(
+            trans, model, centre, radius, st, first, level, want_edge=last_pass, spread2=spread2)
         if first:
             qmin = qm
+            level_shift = 0.0 if lsh is None else lsh
         if last_pass:
             edge_frac = np.count_nonzero(on_edge, axis=1) / np.maximum(np.count_nonzero(valid, axis=1), 1)
         n_valid = np.count_nonzero(valid, axis=1)
@@ -2216,7 +2243,7 @@ def _measure_edges_and_fit(trans, model, cand, st):
         radius = np.where(ok, np.sqrt(np.abs(fits[:, 2] * fits[:, 3])), radius)
     return _Measurement(ok=ok, why=why, fits=fits, n_pts=n_pts, rms=rms, s2=s2, normals=normals, sums=sums,
                         qmin=qmin, edge_frac=edge_frac, n_fits=n_fits, edge_shift=shift,
-                        corner=set(), extra_cov=np.zeros((nc, 2, 2)))
+                        corner=set(), extra_cov=np.zeros((nc, 2, 2)), level_shift=level_shift)
 
 
 # --------------------------------------------------------------------------- stage 8-9: rejection, uncertainty
