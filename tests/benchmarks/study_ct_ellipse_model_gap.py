@@ -19,14 +19,18 @@ magnification larger by about g ppm. The truth only scores; nothing here feeds a
 Measured 2026-11-28 (seeds 11-13, SRD 0.31-0.33, 24 views, 1100 centres each): detected - T -2.1 / -2.5 /
 -2.7 ppm at blur 0.4 / 0.7 / 1.0 px (seeds 11-12), model - T -3.5 / -3.9 / -4.1, so a gap (model -
 detected) of -1.4 to -2.0 ppm at every blur (seeds 11-13, se ~0.5); it closes at delta ~0.5 px, while
-the measured b is 0.9-1.1 px inside the silhouette.
+the measured b is 0.9-1.1 px inside the silhouette. At SRD 0.56-0.57 the gap is within its noise (+0.5,
+-0.9, se 0.9). These figures are from before the detector's level shift (FrameDetections.level_shift_px,
+now added to the published semi-axes); with it the gap at SRD 0.31-0.33 is -0.6 / -0.2 / -0.9 ppm
+(seeds 11-13, blur 0.7).
 
 ``--analytic`` runs the detector alone on analytic noise-free frames (24 steel spheres of 1.5 mm radius at
 0.33 m, exact cone-beam path lengths, 8 x 8 points per pixel, Gaussian blur): at blur 0.7 px (seeds 1-6)
 the detected centre lies +1.3, +0.6, +0.4, +1.0, +1.5, +0.7 ppm (se 0.35-0.53 each; mean +0.9) outward of
 the centre of the cone section with the detected b, so the gap is the detector's (with blur), not the
-renderer's; at blur 0 the sharp edge's sampling errors (se 2-2.5 ppm) hide it. At SRD 0.56-0.57 the gap is within its noise (+0.5, -0.9, se 0.9). Prints a table, then
-ONE JSON line.
+renderer's; at blur 0 the sharp edge's sampling errors (se 2-2.5 ppm) hide it. With b + level shift:
++0.07 (blur 0.7) and -0.14 ppm (blur 1.2), mean of the six (tests/ct_imaging/test_detect_level_shift.py).
+Prints a table, then ONE JSON line.
 """
 
 import argparse
