@@ -2043,7 +2043,8 @@ def _edge_spread2(slope, level, valid, q_in, r_in, radius, dr, st):
     qi = _interp_rows(np.full(sig.size, R * (f_in - 1.0)), x, b_all)
     lev = 1.0 - st.edge_level * (1.0 - qi)
     cross = (b_all[:, :-1] < lev[:, None]) & (b_all[:, 1:] >= lev[:, None])
-    xc = x[x.size - 2 - np.argmax(cross[:, ::-1], axis=1)]
+    kc = x.size - 2 - np.argmax(cross[:, ::-1], axis=1)      # grid cell of each blur's last crossing
+    xc = x[kc]
     sl = (_interp_rows(xc + h_dr, x, b_all) - _interp_rows(xc - h_dr, x, b_all)) / (2.0 * h_dr)
     with np.errstate(divide="ignore", invalid="ignore"):
         app = np.where(cross.any(axis=1), (1.0 - qi) / (np.sqrt(2.0 * np.pi) * sl), np.nan)
@@ -2060,10 +2061,9 @@ def _edge_spread2(slope, level, valid, q_in, r_in, radius, dr, st):
         return 0.0, 0.0
     s_fit = float(np.interp(s_app, a_ok, s_ok))
     # the crossing to a fraction of the grid step, and the unblurred ball's crossing of the same level
-    k = np.clip(x.size - 2 - np.argmax(cross[:, ::-1], axis=1), 0, x.size - 2)
-    b0, b1 = b_all[np.arange(sig.size), k], b_all[np.arange(sig.size), k + 1]
+    b0, b1 = b_all[np.arange(sig.size), kc], b_all[np.arange(sig.size), kc + 1]
     with np.errstate(divide="ignore", invalid="ignore"):
-        xc_f = x[k] + np.clip((lev - b0) / (b1 - b0), 0.0, 1.0) * dx
+        xc_f = xc + np.clip((lev - b0) / (b1 - b0), 0.0, 1.0) * dx
         x_iso = np.sqrt(np.clip(R * R - (np.log(np.clip(lev, 1e-9, 1.0)) / (2.0 * mu)) ** 2, 0.0, None)) - R
     shift = x_iso - xc_f
     return s_fit ** 2, float(np.interp(s_fit, sig[ok], shift[ok]))
