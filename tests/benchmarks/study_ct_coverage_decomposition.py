@@ -94,6 +94,9 @@ def study_case(case):
     centre = np.array([(t["cols"] - 1) / 2, (t["rows"] - 1) / 2])
     d = uv - centre
     s_abs = np.abs(a[:, 9])
+    out["err_det"] = err_det.tolist()
+    out["sd_det"] = sd_det.tolist()
+    out["mean_error_px"] = e_det.mean(0).tolist()     # the detection errors' common shift (cols, rows)
     out["k_ppm"] = _scale(e_det, d, np.ones(len(a), bool))
     out["k_silhouette_ppm"] = _scale(e_det, d, s_abs >= 0.8)
     out["k_inner_ppm"] = _scale(e_det, d, s_abs < 0.7)
@@ -112,6 +115,7 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--keep", action="append", required=True, help="validate_ct_indep.py --keep directory (repeatable)")
     ap.add_argument("--seeds", action="append", required=True, help="first-last, one per --keep")
+    ap.add_argument("--dump", help="write the per-recording rows (JSON) to this file")
     args = ap.parse_args()
     rows = []
     for keep, seeds in zip(args.keep, args.seeds):
@@ -121,6 +125,8 @@ def main():
             if c is not None:
                 rows.append(study_case(c))
                 print(f"seed {s} tube {rows[-1]['tube']!s:5s} z {np.round(rows[-1]['z'], 2)}", flush=True)
+    if args.dump:
+        pathlib.Path(args.dump).write_text(json.dumps(rows))
     summary = {"cases": len(rows), "tube_cases": sum(r["tube"] for r in rows), "names": NAMES}
     print(f"\n{'z-scores over ' + str(len(rows)) + ' recordings':58s} " + " ".join(f"{n:>6s}" for n in NAMES) + "  sum z^2")
     for key, label in (("z", "total (the solver's u)"), ("z_cmm", "CMM part / its u"), ("z_det", "detection part / its u"),

@@ -7,7 +7,9 @@ object, CMM draw and noise stream) with one of its physics switched, solves each
 (study_ct_coverage_decomposition.study_case): all spheres, the silhouette ones (|s| >= 0.8), the inner
 ones (|s| < 0.7), in ppm, and the 7 instrument z-scores.
 
-Modes: ``mono`` (one beam energy: no beam hardening), ``mono_sharp`` (also a 0.3 px PSF core and no tail).
+Modes: ``drawn`` (as drawn, re-detected by the current code), ``mono`` (one beam energy: no beam
+hardening), ``mono_sharp`` (also a 0.3 px PSF core and no tail), ``notail`` (the PSF's tail off),
+``noheel`` (the open beam's gain gradient off).
 
     .venv/bin/python tests/benchmarks/study_ct_tube_bias_physics.py --mode mono --seeds 7224,7226,7228 \
         --kept /tmp/ct512b --work /tmp/tubebias_mono
@@ -33,26 +35,37 @@ import study_ct_coverage_decomposition as sd  # noqa: E402
 import study_ct_location_bias as lb  # noqa: E402
 
 
+MODES = ("drawn", "mono", "mono_sharp", "notail", "noheel")
+
+
 def switch_physics(mode: str) -> None:
-    if mode not in ("mono", "mono_sharp"):
+    """drawn: as drawn, re-detected by the current code; mono: one beam energy; mono_sharp: also a
+    0.3 px PSF core and no tail; notail: the PSF's tail off (core as drawn); noheel: a flat open beam's
+    gain gradient off (the radial fall-off as drawn)."""
+    if mode not in MODES:
         raise SystemExit(f"unknown mode {mode!r}")
-    gen.BEAM_WEIGHTS = np.array([0.0, 1.0, 0.0])      # the middle energy only
-    if mode == "mono_sharp":
+    if mode in ("mono", "mono_sharp"):
+        gen.BEAM_WEIGHTS = np.array([0.0, 1.0, 0.0])      # the middle energy only
+    changes = {"mono_sharp": {"tail_fraction": 0.0, "psf_sigma_px": 0.3}, "notail": {"tail_fraction": 0.0},
+               "noheel": {"heel": 0.0}}.get(mode)
+    if changes:
         draw = gen.draw_case
 
-        def sharp(*a, **k):
+        def switched(*a, **k):
             case = draw(*a, **k)
-            case["phys"].tail_fraction, case["phys"].psf_sigma_px = 0.0, 0.3
+            for key, v in changes.items():
+                setattr(case["phys"], key, v)
             return case
-        gen.draw_case = sharp
+        gen.draw_case = switched
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--mode", required=True, choices=("mono", "mono_sharp"))
+    ap.add_argument("--mode", required=True, choices=MODES)
     ap.add_argument("--seeds", required=True, help="comma-separated; 512 px, 36 views as validate_ct_indep.py")
     ap.add_argument("--kept", required=True, help="validate_ct_indep.py --keep directory holding these seeds as drawn")
     ap.add_argument("--work", required=True, help="new directory for the re-rendered recordings")
+    ap.add_argument("--dump", help="also write the JSON to this file")
     args = ap.parse_args()
     switch_physics(args.mode)
     work = pathlib.Path(args.work)
@@ -67,11 +80,15 @@ def main():
                 row[label] = None
                 continue
             r = sd.study_case(c)
-            row[label] = {k: np.round(r[k], 2).tolist() for k in ("k_ppm", "k_silhouette_ppm", "k_inner_ppm", "z")}
+            row[label] = {k: np.round(r[k], 4).tolist() for k in ("k_ppm", "k_silhouette_ppm", "k_inner_ppm", "z", "z_det")}
+            row[label]["err_det"] = r["err_det"]
+            row[label]["sd_det"] = r["sd_det"]
             row["tube"] = r["tube"]
             print(f"seed {s} {label:10s} k {row[label]['k_ppm']} silhouette {row[label]['k_silhouette_ppm']} "
                   f"inner {row[label]['k_inner_ppm']} z {row[label]['z']}", flush=True)
         out["cases"].append(row)
+    if args.dump:
+        pathlib.Path(args.dump).write_text(json.dumps(out))
     print(json.dumps(out))
 
 
