@@ -36,9 +36,10 @@ HERE = pathlib.Path(__file__).resolve().parent
 sys.path[:0] = [str(HERE), str(HERE.parent / "ct_validation")]
 
 import ct_indep_gen as gen  # noqa: E402
-from ct_calib_nodes.core.detect import detect_spheres  # noqa: E402
+from ct_calib_nodes.core.detect import DetectionSettings, detect_spheres  # noqa: E402
 
 COUNTS = 50000.0
+SETTINGS = DetectionSettings()
 
 
 class _NoNoise:
@@ -76,7 +77,7 @@ def centres(case, views, noise=False):
     for j, a in enumerate(case["alphas"][:views]):
         rng = _FixedNoise(1000 + j, (inst.rows, inst.cols)) if noise else _NoNoise()
         img, cr, _ = ren.frame(a, rng)
-        det = detect_spheres(img, encoding="mono16", flat_field_counts=case["phys"].counts)
+        det = detect_spheres(img, encoding="mono16", flat_field_counts=case["phys"].counts, settings=SETTINGS)
         for c in det.centre_px:
             d = np.linalg.norm(cr - c, axis=1)
             out[(j, int(np.argmin(d)))] = np.asarray(c, float)
@@ -147,7 +148,11 @@ def main():
     ap.add_argument("--heel", type=float, default=0.2, help="relative gain change from the centre to an edge")
     ap.add_argument("--noisy", action="store_true",
                     help="instead: each recording's own physics and heel, with one fixed noise field per view")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="a DetectionSettings field (float), e.g. edge_spread_px=0")
     args = ap.parse_args()
+    global SETTINGS
+    SETTINGS = DetectionSettings(**{k: float(v) for k, v in (a.split("=", 1) for a in args.set)})
     if args.noisy:
         rows = [study_noisy(int(s), args.views) for s in args.seeds.split(",")]
     else:
