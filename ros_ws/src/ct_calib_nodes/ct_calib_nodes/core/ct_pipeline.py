@@ -592,7 +592,7 @@ class FrameProcessor:
             # the semi-axes of the cone section the centre belongs to: the fitted ellipse's plus the
             # blur's inward level shift (detect.FrameDetections.level_shift_px; the ellipse-centre model)
             semi_axes_px=np.concatenate([np.asarray(det.semi_axes_px).reshape(-1, 2)
-                                         + float(getattr(det, "level_shift_px", 0.0)), np.full((nr, 2), np.nan)]),
+                                         + float(det.level_shift_px), np.full((nr, 2), np.nan)]),
             angle_rad=np.concatenate([np.asarray(det.angle_rad).reshape(-1), np.full(nr, np.nan)]),
             fit_rms_px=np.concatenate([np.asarray(det.fit_rms_px).reshape(-1), np.full(nr, np.nan)]))
 
