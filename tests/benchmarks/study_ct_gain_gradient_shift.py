@@ -39,7 +39,6 @@ import ct_indep_gen as gen  # noqa: E402
 from ct_calib_nodes.core.detect import DetectionSettings, detect_spheres  # noqa: E402
 
 COUNTS = 50000.0
-SETTINGS = DetectionSettings()
 
 
 class _NoNoise:
@@ -69,7 +68,7 @@ class _FixedNoise:
         return mean + sd * self.z2
 
 
-def centres(case, views, noise=False):
+def centres(case, views, settings, noise=False):
     """{(view, true sphere index): detected centre (col, row)}."""
     inst = case["inst"]
     ren = gen.Renderer(inst, case["c_true"], case["diam"], case["phys"])
@@ -77,14 +76,26 @@ def centres(case, views, noise=False):
     for j, a in enumerate(case["alphas"][:views]):
         rng = _FixedNoise(1000 + j, (inst.rows, inst.cols)) if noise else _NoNoise()
         img, cr, _ = ren.frame(a, rng)
-        det = detect_spheres(img, encoding="mono16", flat_field_counts=case["phys"].counts, settings=SETTINGS)
+        det = detect_spheres(img, encoding="mono16", flat_field_counts=case["phys"].counts, settings=settings)
         for c in det.centre_px:
             d = np.linalg.norm(cr - c, axis=1)
             out[(j, int(np.argmin(d)))] = np.asarray(c, float)
     return out
 
 
-def study_noisy(seed, views):
+def _change(ref, got):
+    """(M, 2) centre changes got - ref over the (view, sphere) pairs found in both."""
+    return np.array([got[k] - ref[k] for k in got if k in ref])
+
+
+def _predicted(phys, heel, heel_dir, cols):
+    """spread^2 grad ln g at the frame's centre (cols, rows) [px]: the renderer's PSF sd squared plus
+    1/12 for the pixel aperture; the gain rises towards +col (heel_dir 0) or the top, -row (pi/2)."""
+    spread2 = phys.psf_sigma_px ** 2 + 1.0 / 12.0
+    return spread2 * heel / (cols / 2) * np.array([math.cos(heel_dir), -math.sin(heel_dir)]) + 0.0   # no -0.0
+
+
+def study_noisy(seed, views, settings):
     """The recording's own physics (counts, read noise, tail, fall-off, heel as drawn; mono16), heel on
     against heel off under one fixed noise field per view: the median and mean change, and the centres
     that change by more than 0.003 px."""
@@ -93,49 +104,39 @@ def study_noisy(seed, views):
     ph.encoding = "mono16"
     heel = ph.heel
     ph.heel = 0.0
-    ref = centres(case, views, noise=True)
+    ref = centres(case, views, settings, noise=True)
     ph.heel = heel
-    got = centres(case, views, noise=True)
-    keys = [k for k in got if k in ref]
-    d = np.array([got[k] - ref[k] for k in keys])
+    d = _change(ref, centres(case, views, settings, noise=True))
     big = np.abs(d).max(axis=1) > 0.003
-    spread2 = ph.psf_sigma_px ** 2 + 1.0 / 12.0
-    n2 = case["inst"].cols / 2
-    pred = spread2 * heel * np.array([math.cos(ph.heel_dir), -math.sin(ph.heel_dir)]) / n2
+    pred = _predicted(ph, heel, ph.heel_dir, case["inst"].cols)
     row = {"seed": seed, "tube": bool(ph.tube), "heel": round(heel, 3), "heel_dir": round(ph.heel_dir, 3),
-           "counts": round(ph.counts), "n": len(keys), "predicted_px": np.round(pred, 6).tolist(),
+           "counts": round(ph.counts), "n": len(d), "predicted_px": np.round(pred, 6).tolist(),
            "median_change_px": np.round(np.median(d, 0), 6).tolist(), "mean_change_px": np.round(d.mean(0), 6).tolist(),
            "se_mean_px": np.round(d.std(0) / np.sqrt(len(d)), 6).tolist(), "n_over_3e-3": int(big.sum()),
            "mean_change_of_those_px": np.round(d[big].mean(0), 5).tolist() if big.any() else None}
-    print(f"seed {seed} (noise as drawn, heel {heel:.3f} at {ph.heel_dir:.2f} rad): {len(keys)} centres, change median "
+    print(f"seed {seed} (noise as drawn, heel {heel:.3f} at {ph.heel_dir:.2f} rad): {len(d)} centres, change median "
           f"{row['median_change_px']} mean {row['mean_change_px']} (se {row['se_mean_px']}) px, predicted {row['predicted_px']}; "
           f"{row['n_over_3e-3']} change by > 0.003 px, their mean {row['mean_change_of_those_px']}", flush=True)
     return row
 
 
-def study(seed, views, heel):
+def study(seed, views, heel, settings):
     case = gen.draw_case(seed)
     ph = case["phys"]
     ph.counts, ph.read_sd, ph.tail_fraction, ph.falloff, ph.encoding = COUNTS, 0.0, 0.0, 0.0, "mono16"
     ph.heel = 0.0
-    ref = centres(case, views)
-    spread2 = ph.psf_sigma_px ** 2 + 1.0 / 12.0
+    ref = centres(case, views, settings)
     row = {"seed": seed, "tube": bool(ph.tube), "psf_sigma_px": round(ph.psf_sigma_px, 3), "heel": heel,
            "cols": case["inst"].cols}
     for label, direction in (("cols", 0.0), ("rows", 0.5 * math.pi)):
         ph.heel, ph.heel_dir = heel, direction
-        got = centres(case, views)
-        keys = [k for k in got if k in ref]
-        d = np.array([got[k] - ref[k] for k in keys])
-        # the gain rises towards +col (heel_dir 0) or towards the top, -row (heel_dir pi/2); the
-        # gradient of ln g at the frame's centre, per pixel
-        g = heel / (case["inst"].cols / 2)
-        pred = spread2 * g * (np.array([1.0, 0.0]) if label == "cols" else np.array([0.0, -1.0]))
-        row[label] = {"n": len(keys), "mean_shift_px": np.round(d.mean(0), 6).tolist(),
+        d = _change(ref, centres(case, views, settings))
+        pred = _predicted(ph, heel, direction, case["inst"].cols)
+        row[label] = {"n": len(d), "mean_shift_px": np.round(d.mean(0), 6).tolist(),
                       "median_shift_px": np.round(np.median(d, 0), 6).tolist(),
                       "sd_px": np.round(d.std(0), 6).tolist(), "predicted_px": np.round(pred, 6).tolist()}
         print(f"seed {seed} tube {ph.tube!s:5s} psf {ph.psf_sigma_px:.2f} px, heel {heel} along {label}: "
-              f"{len(keys)} centres, shift mean {np.round(d.mean(0), 5)} median {np.round(np.median(d, 0), 5)} px "
+              f"{len(d)} centres, shift mean {np.round(d.mean(0), 5)} median {np.round(np.median(d, 0), 5)} px "
               f"(sd {np.round(d.std(0), 5)}), "
               f"spread^2 grad ln g {np.round(pred, 5)}", flush=True)
     return row
@@ -151,12 +152,11 @@ def main():
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                     help="a DetectionSettings field (float), e.g. edge_spread_px=0")
     args = ap.parse_args()
-    global SETTINGS
-    SETTINGS = DetectionSettings(**{k: float(v) for k, v in (a.split("=", 1) for a in args.set)})
+    settings = DetectionSettings(**{k: float(v) for k, v in (a.split("=", 1) for a in args.set)})
     if args.noisy:
-        rows = [study_noisy(int(s), args.views) for s in args.seeds.split(",")]
+        rows = [study_noisy(int(s), args.views, settings) for s in args.seeds.split(",")]
     else:
-        rows = [study(int(s), args.views, args.heel) for s in args.seeds.split(",")]
+        rows = [study(int(s), args.views, args.heel, settings) for s in args.seeds.split(",")]
     print(json.dumps({"heel": args.heel, "views": args.views, "noisy": args.noisy, "cases": rows}))
 
 
