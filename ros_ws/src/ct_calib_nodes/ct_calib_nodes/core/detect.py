@@ -219,6 +219,16 @@ class DetectionSettings:
         Sd of the detector's edge spread (blur and pixel aperture) for the blur correction of
         edge points on a background gradient (see :func:`_edge_spread2`); None estimates it per
         frame from the shadows' edges, 0 switches the correction off.
+    frame_gradient_share : float
+        Share of the blur correction applied for the frame-wide smooth part of the background's
+        gradient (a quadratic in ln B fitted over the frame's shadows, :func:`_frame_field`); the
+        local remainder (holder walls, plates: material in the beam) is always corrected in
+        full. A gain applied after the blur (a detector gain map, a flat field the recording
+        did not divide out) needs no correction, a fluence gradient before it (the anode heel)
+        the full one, and one frame cannot tell them apart (doc/ct_detect.md, "A gain gradient
+        applied after the blur"). The default, half, is off by at most half the correction
+        either way; the rest is reported as one systematic pattern shared by every centre of
+        the recording (``FrameDetections.systematic_px``), which the solvers propagate.
     exclusion_px : float
         Margin beyond the blob radius left out of the local background fit (blur, penumbra).
     background_span_px : float
@@ -295,6 +305,7 @@ class DetectionSettings:
     background_edge_refit: bool = True
     max_corner_misfit: float | None = 1.5
     edge_spread_px: float | None = None
+    frame_gradient_share: float = 0.5
     snap_sigma: float = 4.0
     band_core: bool = True
     direction_blend: bool = False
@@ -311,6 +322,8 @@ class DetectionSettings:
             raise ValueError("segment_depth must be in (0, 1)")
         if not 0.0 < self.edge_level < 1.0:
             raise ValueError("edge_level must be in (0, 1)")
+        if not 0.0 <= self.frame_gradient_share <= 1.0:
+            raise ValueError(f"frame_gradient_share must be in [0, 1], got {self.frame_gradient_share}")
         if int(self.n_rays) < 8 or int(self.n_samples) < 8:
             raise ValueError("n_rays and n_samples must be >= 8")
         if not (self.background_edge_gradient > 0 and 0 <= self.background_edge_min_fraction < 1
@@ -401,6 +414,15 @@ class FrameDetections:
         crossing, for the frame's median ball [px] (0 when the edge spread is not measured). The
         fitted centre belongs to that contour, a cone section whose semi-axes are
         ``semi_axes_px + level_shift_px``: what the ellipse-centre model needs (ct_core.md).
+    systematic_px : ndarray of shape (M, 2) or None
+        One standard deviation of a systematic error shared by every centre of the recording
+        [px]: the blur correction of the frame-wide background gradient is applied at
+        ``DetectionSettings.frame_gradient_share`` of its full value ``c``, and the right share
+        lies anywhere in [0, 1] (0 for a gain after the blur, 1 for a fluence gradient), so the
+        error is ``(h - share) c`` with h uniform: sd ``c sqrt(1/12 + (share - 1/2)^2)``. Its sign
+        is the same in every frame, so it does not average out: the solvers propagate it as a
+        fully correlated pattern (CentreObservations.systematic_px). Zero for shadows measured by
+        the corner or partial-edge models (no blur correction there); None when not measured.
     """
 
     centre_px: np.ndarray
@@ -423,6 +445,7 @@ class FrameDetections:
     frame_noise: float = float("nan")
     frame_direction_rad: float = float("nan")
     level_shift_px: float = 0.0
+    systematic_px: np.ndarray | None = None
 
     def __len__(self):
         return self.centre_px.shape[0]
@@ -765,7 +788,8 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
         return _assemble([], rej, 0, sdd_px, principal_point_px, trans.shape, np.zeros((0, 2)),
                          "no sphere shadow accepted")
     model, hot = _local_backgrounds(trans, bg, cand, st)                                  # 4 local background,
-    clock.lap("local_background")                                                         # hot pixels
+    model.frame_field = _frame_field(model, cand, trans.shape)                            # hot pixels, frame's
+    clock.lap("local_background")                                                         # smooth gradient
     meas = _measure_edges_and_fit(trans, model, cand, st)                                 # 5 edges, 6 fit
     clock.lap("edges_fit")
     deferred = []
@@ -777,7 +801,8 @@ def detect_spheres(image, *, encoding: str = "mono16", flat_field_counts=None, e
     out = _assemble(accepted, rej, meas.n_fits, sdd_px, principal_point_px, trans.shape, hot, "",
                     meas=meas, cand=cand)
     out = replace(out, frame_noise=float(noise), frame_direction_rad=float(cand.frame_direction),
-                  level_shift_px=float(meas.level_shift))
+                  level_shift_px=float(meas.level_shift),
+                  systematic_px=_frame_systematic(accepted, meas, model, st))
     clock.lap("uncertainty")
     return out
 
@@ -1225,6 +1250,7 @@ class _LocalBackground:
     corner: tuple | None = None  # per candidate a _CornerModel whose grad marks background edges
     direction_evidence: np.ndarray | None = None  # (C,) |theta - frame's| / sd (see _blend_direction)
     ray_keep: np.ndarray | None = None  # (C, 12) rays of these 30 deg sectors used (arc pass), None: all
+    frame_field: np.ndarray | None = None  # (8,) _frame_field: the frame-wide quadratic in ln B, or None
 
 
 def _local_backgrounds(trans, bg, cand, st):
@@ -1429,6 +1455,73 @@ def _background_at(model, x, y):
     b_u *= v
     b_u += a_u
     return b_u, u
+
+
+#: variance [px^2] of the smoothing by the detector's own bilinear sampling along the rays (frac (1 - frac)
+#: averaged over the sub-pixel position: 1/6). It acts on the frame as recorded, after any gain, so it
+#: is part of the measured edge spread that the blur correction must undo whatever the gain's origin:
+#: a gain gradient after the blur moved centres by -0.17 grad ln g px with no correction at all, for
+#: blurs of 0.6 and 1.0 px alike (tests/ct_imaging/test_detect_frame_gradient.py).
+BILINEAR_VAR_PX2 = 1.0 / 6.0
+
+
+def _frame_field(model, cand, shape, min_quadratic: int = 12, min_plane: int = 5):
+    """The frame-wide smooth part of the background: ln B at every candidate's centre (its local
+    model, interpolated across the shadow) fitted by a quadratic in the image coordinates (a plane
+    with fewer than ``min_quadratic`` candidates, None below ``min_plane``), robustly (Huber,
+    k = 1.5 MAD sd, five reweightings) so that shadows on a holder's wall or past a plate's edge
+    do not pull it. A heel, a gain map, the radial fall-off of an open beam are in it; walls and
+    steps are not. Returns [x0, y0, s, p1, ..., p5] (8,): ln B = const + p1 X + p2 Y + p3 X^2 +
+    p4 X Y + p5 Y^2 with X = (x - x0) / s, Y = (y - y0) / s (p3..p5 zero for a plane), or None.
+    The fit is the same surface on a crop holding the same shadows (tracked detection)."""
+    c = cand.centre
+    n = c.shape[0]
+    if n < min_plane:
+        return None
+    b, _ = _background_at(model, c[:, 0].reshape(-1, 1), c[:, 1].reshape(-1, 1))
+    lnb = np.log(np.maximum(b[:, 0], 1e-6))
+    x0, y0 = 0.5 * (shape[1] - 1), 0.5 * (shape[0] - 1)
+    sc = 0.5 * max(shape)
+    xn, yn = (c[:, 0] - x0) / sc, (c[:, 1] - y0) / sc
+    cols = [np.ones(n), xn, yn] + ([xn * xn, xn * yn, yn * yn] if n >= min_quadratic else [])
+    a = np.column_stack(cols)
+    w = np.ones(n)
+    p = np.zeros(a.shape[1])
+    for _ in range(6):
+        sw = np.sqrt(w)
+        p = np.linalg.lstsq(a * sw[:, None], lnb * sw, rcond=None)[0]
+        r = lnb - a @ p
+        s = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+        k = 1.5 * max(s, 1e-9)
+        w = np.minimum(1.0, k / np.maximum(np.abs(r), 1e-300))
+    q = np.zeros(5)
+    q[:a.shape[1] - 1] = p[1:]
+    return np.concatenate([[x0, y0, sc], q])
+
+
+def _frame_gradient(field, x, y):
+    """Gradient (d ln B / dx, d ln B / dy) [1/px] of the frame-wide quadratic at image points x, y."""
+    x0, y0, sc, p1, p2, p3, p4, p5 = field
+    xn, yn = (x - x0) / sc, (y - y0) / sc
+    return (p1 + 2 * p3 * xn + p4 * yn) / sc, (p2 + p4 * xn + 2 * p5 * yn) / sc
+
+
+def _frame_systematic(accepted, meas, model, st):
+    """(M, 2) one sd of the error the frame-wide gradient's share leaves in each accepted centre
+    (FrameDetections.systematic_px): the ambiguous part of the full correction at the centre,
+    (spread^2 - BILINEAR_VAR_PX2) G (a uniform gradient moves every edge point of a circle by
+    s^2 n.G, hence its centre by s^2 G), times sqrt(1/12 + (share - 1/2)^2)."""
+    m = len(accepted)
+    out = np.zeros((m, 2))
+    if not m or model.frame_field is None or not meas.spread2:
+        return out
+    idx = np.array([a[0] for a in accepted])
+    centre = meas.fits[idx, :2]
+    gx, gy = _frame_gradient(model.frame_field, centre[:, 0], centre[:, 1])
+    f = max(0.0, meas.spread2 - BILINEAR_VAR_PX2) * np.sqrt(1.0 / 12.0 + (st.frame_gradient_share - 0.5) ** 2)
+    out[:, 0], out[:, 1] = f * gx, f * gy
+    out[np.array([i in meas.corner for i in idx], dtype=bool)] = 0.0
+    return out
 
 
 # --------------------------------------------------------------------------- stage 4b: corners
@@ -1897,6 +1990,7 @@ class _Measurement:
     extra_cov: np.ndarray = None  # (C, 2, 2) added to the centre covariance (corner model's own)
     corner: set = None      # candidates measured with the corner model
     level_shift: float = 0.0  # the blur's inward shift of the level crossing [px] (_edge_spread2)
+    spread2: float = 0.0      # edge spread variance used for the blur correction [px^2]
 
 
 def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True, spread2=None):
@@ -1958,7 +2052,15 @@ def _edge_points(trans, model, centre, radius, st, first, level, want_edge=True,
         bm, _ = _background_at(model, ex0 - cphi[None, :], ey0 - sphi[None, :])
         with np.errstate(divide="ignore", invalid="ignore"):
             glog = 0.5 * np.log(np.maximum(bp, 1e-6) / np.maximum(bm, 1e-6))
-        r_edge = r_edge + spread2 * np.where(np.isfinite(glog), glog, 0.0)
+        glog = np.where(np.isfinite(glog), glog, 0.0)
+        if model.frame_field is not None and st.frame_gradient_share != 1.0:
+            # the frame-wide smooth part only by its share (DetectionSettings.frame_gradient_share);
+            # the share of the spread that is this detector's own bilinear sampling (after any
+            # gain) is corrected in full
+            gx, gy = _frame_gradient(model.frame_field, ex0, ey0)
+            amb = (1.0 - st.frame_gradient_share) * max(0.0, 1.0 - BILINEAR_VAR_PX2 / spread2)
+            glog = glog - amb * (cphi[None, :] * gx + sphi[None, :] * gy)
+        r_edge = r_edge + spread2 * glog
     ex = centre[:, 0, None] + cphi[None, :] * r_edge
     ey = centre[:, 1, None] + sphi[None, :] * r_edge
     # edge points where the background itself changes fast across the structure (> gradient
@@ -2243,7 +2345,8 @@ def _measure_edges_and_fit(trans, model, cand, st):
         radius = np.where(ok, np.sqrt(np.abs(fits[:, 2] * fits[:, 3])), radius)
     return _Measurement(ok=ok, why=why, fits=fits, n_pts=n_pts, rms=rms, s2=s2, normals=normals, sums=sums,
                         qmin=qmin, edge_frac=edge_frac, n_fits=n_fits, edge_shift=shift,
-                        corner=set(), extra_cov=np.zeros((nc, 2, 2)), level_shift=level_shift)
+                        corner=set(), extra_cov=np.zeros((nc, 2, 2)), level_shift=level_shift,
+                        spread2=float(spread2 or 0.0))
 
 
 # --------------------------------------------------------------------------- stage 8-9: rejection, uncertainty
