@@ -17,6 +17,10 @@ detected as the offline solver detects raw mono16 frames, centres paired by near
 on against off under one fixed noise field per view (Gaussian for Poisson), so the pair differs by the
 heel alone: median and mean change and the centres that change by more than 0.003 px.
 
+Since round 27 the detector corrects only half of the frame-wide smooth part (DetectionSettings.
+``frame_gradient_share``, the rest reported as a shared systematic): ``--set frame_gradient_share=1``
+gives the round-26 behaviour these figures were first measured with.
+
 Prints per seed and direction the mean and median shift (cols, rows) against ``spread^2 grad ln g`` (the renderer's
 PSF sd squared plus 1/12 for the pixel aperture), then ONE JSON line. Measured figures: ct_detect.md,
 "A gain gradient applied after the blur".

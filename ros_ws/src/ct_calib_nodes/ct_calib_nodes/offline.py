@@ -304,7 +304,7 @@ def solve_recording(recording, instrument, ref, *, init_frames: int = 6, loss: s
             ids, uv, sig, minor = fr.accepted()
             idx = np.searchsorted(ref.ids, ids) if len(ids) else np.zeros(0, np.int64)
             out.acc.add_frame(fr.stamp_ns, fr.alpha_rad, fr.srd_reported_m, idx, uv, sig,
-                              int(np.count_nonzero(fr.flag)), minor)
+                              int(np.count_nonzero(fr.flag)), minor, fr.accepted_systematic())
 
     def bad_frame(t, text):
         counts["bad_frames"] += 1

@@ -94,6 +94,7 @@ class PositionData:
     sphere_index: list = field(default_factory=list)    # per frame (Q_j,)
     sigma_px: list = field(default_factory=list)        # per frame (Q_j,)
     minor_axis_px: list = field(default_factory=list)   # per frame (Q_j,) or None
+    systematic_px: list = field(default_factory=list)   # per frame (Q_j, 2) or None (detect.FrameDetections)
     n_rejected: int = 0
 
     @property
@@ -112,11 +113,15 @@ class PositionData:
         use_sigma = all(len(s) == 0 or np.all(np.asarray(s) > 0) for s in sig)
         minor = pick(self.minor_axis_px)
         use_minor = all(m is not None for m in minor)      # the ellipse-centre model needs every axis
+        syst = pick(self.systematic_px)
+        use_sys = any(s is not None and np.any(s) for s in syst)
         return CentreObservations.from_views(
             pick(self.uv_px), pick(self.sphere_index), np.asarray(self.alphas_rad)[order],
             stamp_ns_per_view=np.asarray(self.stamps_ns, dtype=np.int64)[order],
             sigma_px_per_view=sig if use_sigma else None,
-            minor_axis_px_per_view=minor if use_minor else None)
+            minor_axis_px_per_view=minor if use_minor else None,
+            systematic_px_per_view=[np.zeros((len(i), 2)) if s is None else s
+                                    for s, i in zip(syst, pick(self.sphere_index))] if use_sys else None)
 
 
 class CampaignAccumulator:
@@ -138,10 +143,11 @@ class CampaignAccumulator:
         self._seen_stamps: set = set()
 
     def add_frame(self, stamp_ns: int, alpha_rad: float, srd_reported_m: float, sphere_index, uv_px,
-                  sigma_px=None, n_rejected: int = 0, minor_axis_px=None) -> int:
+                  sigma_px=None, n_rejected: int = 0, minor_axis_px=None, systematic_px=None) -> int:
         """Add the accepted observations of one frame; returns its position index.
 
         ``minor_axis_px`` (Q,): semi-minor axes of the shadow ellipses [px], or None.
+        ``systematic_px`` (Q, 2): the detector's shared systematic pattern (detect.FrameDetections), or None.
 
         A frame whose stamp was already added is ignored (returns -1): replays and
         re-deliveries must not count twice.
@@ -159,6 +165,9 @@ class CampaignAccumulator:
         minor = None if minor_axis_px is None else np.asarray(minor_axis_px, dtype=float).reshape(-1)
         if minor is not None and len(minor) != len(idx):
             raise ValueError(f"{len(idx)} sphere indices but {len(minor)} ellipse axes")
+        syst = None if systematic_px is None else np.asarray(systematic_px, dtype=float).reshape(-1, 2)
+        if syst is not None and (len(syst) != len(idx) or not np.all(np.isfinite(syst))):
+            raise ValueError(f"{len(idx)} sphere indices but {len(syst)} systematic shifts (or non-finite ones)")
         k, new = self.segmenter.push(srd_reported_m)
         if new:
             self.positions.append(PositionData(float(srd_reported_m)))
@@ -171,6 +180,7 @@ class CampaignAccumulator:
         p.sphere_index.append(idx)
         p.sigma_px.append(sig)
         p.minor_axis_px.append(minor)
+        p.systematic_px.append(syst)
         p.n_rejected += int(n_rejected)
         self._seen_stamps.add(stamp_ns)
         return k
@@ -228,15 +238,15 @@ def static_result_from_estimate(w, covariance, centres_of_m, *, names=None, unit
     x = np.asarray(w, dtype=float)
     cov = np.asarray(covariance, dtype=float) if covariance is not None else np.full((len(x), len(x)), np.nan)
     centres = np.asarray(centres_of_m, dtype=float)
-    noise = cov_noise = centre_sens = u_c = None
+    noise = cov_noise = centre_sens = u_c = d_sys = None
     if obs is not None and detector is not None and len(x) == 13 and obs.n_obs > 0:
         from .ct_model import StaticKernel  # noqa: PLC0415
         from .static_solver import static_uncertainty  # noqa: PLC0415
 
         kern = StaticKernel(obs, centres, detector)
         sigma = None if obs.sigma_px is None else kern.blocked_weights(obs.sigma_px)
-        _info, noise, cov_noise, centre_sens, _total = static_uncertainty(x, kern, obs, sigma, len(centres),
-                                                                          centre_uncertainty_m)
+        _info, noise, cov_noise, centre_sens, _total, d_sys = static_uncertainty(x, kern, obs, sigma, len(centres),
+                                                                                 centre_uncertainty_m)
         if centre_sens is not None:
             u_c = np.broadcast_to(np.asarray(centre_uncertainty_m, dtype=float), (len(centres),))
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
@@ -249,7 +259,7 @@ def static_result_from_estimate(w, covariance, centres_of_m, *, names=None, unit
         message=message, nfev=0, njev=0, n_iter=0, n_obs=int(n_obs), n_views=0, n_spheres=len(centres),
         condition=np.nan, geometry=static_to_detector_frame(x[:13], centres), x0=x.copy(), loss="linear",
         f_scale_px=None, terms=(), centres_of_m=centres, weights=None, noise=noise, covariance_noise=cov_noise,
-        centre_sensitivity=centre_sens, centre_uncertainty_m=u_c)
+        centre_sensitivity=centre_sens, centre_uncertainty_m=u_c, systematic_sensitivity=d_sys)
 
 
 def campaign_error_map(acc: CampaignAccumulator, motion_results: dict, static: StaticResult, *,
@@ -258,7 +268,9 @@ def campaign_error_map(acc: CampaignAccumulator, motion_results: dict, static: S
 
     The uncertainty is the joint covariance of all positions: each position's
     own (conditional) covariance plus the static geometry's, which every
-    position shares (error_map.joint_motion_covariance).
+    position shares (error_map.joint_motion_covariance), and the detector's
+    shared systematic pattern (MotionResult.systematic_shift), one more
+    shared input of unit variance.
 
     Parameters
     ----------
@@ -286,6 +298,9 @@ def campaign_error_map(acc: CampaignAccumulator, motion_results: dict, static: S
     n_c = 0 if static.centre_sensitivity is None else static.centre_sensitivity.shape[1]
     csens = np.zeros((len(ks), 6, n_c))
     have_centres = u_c is not None and n_c > 0
+    dsys = np.zeros((len(ks), 6, 1))
+    have_sys = static.systematic_sensitivity is not None or any(
+        getattr(motion_results[k], "systematic_shift", None) is not None for k in ks[1:])
     for i, k in enumerate(ks[1:], start=1):
         r = motion_results[k]
         motions[i] = r.x
@@ -298,13 +313,21 @@ def campaign_error_map(acc: CampaignAccumulator, motion_results: dict, static: S
             csens[i] = r.centre_sensitivity
         else:
             have_centres = False
+        if getattr(r, "systematic_shift", None) is not None:
+            dsys[i, :, 0] = r.systematic_shift
     srd = np.array([acc.positions[k].srd_reported_m for k in ks])
+    d_static = static.systematic_sensitivity
     if have_sens and have_centres:
-        joint = joint_motion_covariance(covs, sens, s_noise, csens, np.diag(np.repeat(np.asarray(u_c) ** 2, 3)))
+        shared = np.diag(np.repeat(np.asarray(u_c) ** 2, 3))
+        if have_sys:
+            csens = np.concatenate([csens, dsys], axis=2)
+            shared = np.block([[shared, np.zeros((len(shared), 1))], [np.zeros((1, len(shared))), np.ones((1, 1))]])
+        joint = joint_motion_covariance(covs, sens, s_noise, csens, shared)
     elif have_sens:
-        joint = joint_motion_covariance(covs, sens, static.covariance)
+        s_cov = static.covariance - (0.0 if d_static is None else np.outer(d_static, d_static))
+        joint = joint_motion_covariance(covs, sens, s_cov, *((dsys, np.ones((1, 1))) if have_sys else ()))
     else:
-        joint = joint_motion_covariance(covs)
+        joint = joint_motion_covariance(covs, *((None, None, dsys, np.ones((1, 1))) if have_sys else ()))
     return error_map(srd, motions, joint, definition=definition, name=name,
                      index_repeatability_rad=index_repeatability_rad), ks
 
@@ -441,6 +464,11 @@ class FrameResult:
     semi_axes_px: np.ndarray  # (M, 2) the cone section's: fitted + the detector's level shift
     angle_rad: np.ndarray     # (M,)
     fit_rms_px: np.ndarray    # (M,)
+    systematic_px: np.ndarray | None = None   # (M, 2) detect.FrameDetections.systematic_px, NaN for rejections
+
+    def accepted_systematic(self):
+        """(Q, 2) shared systematic pattern of the accepted observations [px], or None."""
+        return None if self.systematic_px is None else self.systematic_px[self.flag == 0]
 
     def accepted(self):
         """(ids, centre_px, sigma_px, semi-minor axis [px]) of the accepted observations."""
@@ -594,7 +622,9 @@ class FrameProcessor:
             semi_axes_px=np.concatenate([np.asarray(det.semi_axes_px).reshape(-1, 2)
                                          + float(det.level_shift_px), np.full((nr, 2), np.nan)]),
             angle_rad=np.concatenate([np.asarray(det.angle_rad).reshape(-1), np.full(nr, np.nan)]),
-            fit_rms_px=np.concatenate([np.asarray(det.fit_rms_px).reshape(-1), np.full(nr, np.nan)]))
+            fit_rms_px=np.concatenate([np.asarray(det.fit_rms_px).reshape(-1), np.full(nr, np.nan)]),
+            systematic_px=None if det.systematic_px is None else np.concatenate(
+                [np.asarray(det.systematic_px).reshape(-1, 2), np.full((nr, 2), np.nan)]))
 
 
 class FrameRateMonitor:

@@ -38,7 +38,7 @@ from .lm import LOSSES, STOL, correlation_from_covariance, covariance_from_jacob
 from .noise import (MAX_RMS_RATIO, NoiseModel, assess_fit, axis_normals, axis_weights_sigma, estimate_noise,
                     sandwich_covariance)
 from .observations import CentreObservations
-from .static_solver import FitResult, StaticResult, _plain, status_fields
+from .static_solver import FitResult, StaticResult, _plain, status_fields, systematic_response
 from .terms import check_terms
 
 MODES = ("multi", "single")
@@ -83,6 +83,11 @@ class MotionResult(FitResult):
     outcome : str
         As StaticResult.outcome.
     noise : NoiseModel or None
+    systematic_shift : ndarray of shape (6,) or None
+        The motion's shift for the observations' shared systematic pattern at one sd
+        (CentreObservations.systematic_px), directly and through the static geometry
+        (StaticResult.systematic_sensitivity); its outer product is in ``covariance_total``
+        and the error map's joint covariance holds it as one more shared input.
     """
 
     covariance_total: np.ndarray | None
@@ -95,6 +100,7 @@ class MotionResult(FitResult):
     centre_sensitivity: np.ndarray | None = None
     outcome: str = "success"
     noise: NoiseModel | None = None
+    systematic_shift: np.ndarray | None = None
 
     @property
     def std(self) -> np.ndarray:
@@ -283,11 +289,20 @@ def solve_error_motion(obs_k: CentreObservations, static, detector: DetectorSpec
             success, outcome = False, "poor_fit"
             message = why + f" [solver: {message}]"
 
-    cov_total = sens = centre_sens = None
+    cov_total = sens = centre_sens = d_sys = None
     if include_static_uncertainty and static_res is not None and success:
         sens = _static_sensitivity(res.x, jt.T, w, cov.normal_inverse, static_res, obs, detector)
-        s_noise = static_res.covariance if static_res.covariance_noise is None else static_res.covariance_noise
+        d_static = static_res.systematic_sensitivity
+        if static_res.covariance_noise is not None:
+            s_noise = static_res.covariance_noise
+        else:           # the total: without the systematic, which d_sys carries below
+            s_noise = static_res.covariance - (0.0 if d_static is None else np.outer(d_static, d_static))
         cov_total = cov_cond + sens @ s_noise @ sens.T
+        # the shared systematic pattern moves this position's centres and the static geometry alike
+        d_direct = systematic_response(obs, jt, w, cov.normal_inverse)
+        if d_direct is not None or d_static is not None:
+            d_sys = (0.0 if d_direct is None else d_direct) + (0.0 if d_static is None else sens @ d_static)
+            cov_total = cov_total + np.outer(d_sys, d_sys)
         if static_res.centre_sensitivity is not None and static_res.centre_uncertainty_m is not None:
             direct = _direct_centre_sensitivity(res.x, jt.T, w, cov.normal_inverse, kern, static_res, obs)
             centre_sens = direct + sens @ static_res.centre_sensitivity
@@ -301,7 +316,7 @@ def solve_error_motion(obs_k: CentreObservations, static, detector: DetectorSpec
         cost=res.cost, success=bool(success), status=res.status, message=message, nfev=nfev, njev=njev,
         n_iter=nit, n_obs=obs.n_obs, n_views=obs.n_views, mode=mode, condition=cov.condition, x0=start,
         srd_reported_k_m=srd_k, srd_reported_1_m=srd_1, static_sensitivity=sens, centre_sensitivity=centre_sens,
-        outcome=outcome, noise=noise)
+        outcome=outcome, noise=noise, systematic_shift=d_sys)
 
 
 def _direct_centre_sensitivity(m, jac, weights, normal_inverse, kern: MotionKernel, static_res: StaticResult, obs):

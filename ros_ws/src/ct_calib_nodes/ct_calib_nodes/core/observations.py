@@ -61,6 +61,11 @@ class CentreObservations:
         With it the solvers model the observed point as the ellipse centre
         (not the projection of the sphere centre; see ct_model.py); None
         means the observations ARE centre projections.
+    systematic_px : ndarray of shape (Q, 2) or None
+        One standard deviation of an error pattern shared by every
+        observation of the recording [px] (fully correlated: one unknown
+        factor scales all of them; detect.FrameDetections.systematic_px). The
+        solvers propagate it into the covariance; it does not enter the fit.
 
     The constructor converts and validates everything (float64 / int64,
     shapes, NaN / inf, negative indices) and raises ``ValueError`` naming the
@@ -74,6 +79,7 @@ class CentreObservations:
     stamp_ns: np.ndarray | None = None
     sigma_px: np.ndarray | None = None
     minor_axis_px: np.ndarray | None = None
+    systematic_px: np.ndarray | None = None
 
     def __post_init__(self):
         uv = np.asarray(self.uv_px, dtype=float)
@@ -125,15 +131,23 @@ class CentreObservations:
                 raise ValueError(f"minor_axis_px must have shape ({q},), got {mb.shape}")
             if not np.all(np.isfinite(mb)) or np.any(mb <= 0):
                 raise ValueError("minor_axis_px must be finite and > 0")
+        sy = None
+        if self.systematic_px is not None:
+            sy = np.asarray(self.systematic_px, dtype=float)
+            if sy.shape != (q, 2):
+                raise ValueError(f"systematic_px must have shape ({q}, 2), got {sy.shape}")
+            if not np.all(np.isfinite(sy)):
+                raise ValueError("systematic_px contains NaN or inf")
         for name, val in (("uv_px", uv), ("sphere_index", si), ("alpha_rad", al),
-                          ("view_index", vi), ("stamp_ns", st), ("sigma_px", sg), ("minor_axis_px", mb)):
+                          ("view_index", vi), ("stamp_ns", st), ("sigma_px", sg), ("minor_axis_px", mb),
+                          ("systematic_px", sy)):
             object.__setattr__(self, name, None if val is None else _readonly(val))
 
     # ------------------------------------------------------------------ helpers
     @classmethod
     def from_views(cls, uv_px_per_view, sphere_index_per_view, alpha_rad_per_view,
                    stamp_ns_per_view=None, sigma_px_per_view=None,
-                   minor_axis_px_per_view=None) -> "CentreObservations":
+                   minor_axis_px_per_view=None, systematic_px_per_view=None) -> "CentreObservations":
         """Build from per-projection lists (what a detector produces image by image).
 
         Parameters
@@ -145,6 +159,7 @@ class CentreObservations:
         stamp_ns_per_view : array_like of shape (M,), int, optional
         sigma_px_per_view : sequence of array_like of shape (Q_j,), optional
         minor_axis_px_per_view : sequence of array_like of shape (Q_j,), optional
+        systematic_px_per_view : sequence of array_like of shape (Q_j, 2), optional
         """
         m = len(uv_px_per_view)
         if len(sphere_index_per_view) != m or len(np.atleast_1d(alpha_rad_per_view)) != m:
@@ -159,9 +174,12 @@ class CentreObservations:
             [np.asarray(s, dtype=float).reshape(-1) for s in sigma_px_per_view])
         minor = None if minor_axis_px_per_view is None else np.concatenate(
             [np.asarray(s, dtype=float).reshape(-1) for s in minor_axis_px_per_view])
+        syst = None if systematic_px_per_view is None or not m else np.concatenate(
+            [np.asarray(s, dtype=float).reshape(-1, 2) for s in systematic_px_per_view])
         return cls(uv_px=np.concatenate(uv) if m else np.zeros((0, 2)),
                    sphere_index=np.concatenate([np.asarray(s).reshape(-1) for s in sphere_index_per_view]).astype(np.int64) if m else np.zeros(0, np.int64),
-                   alpha_rad=alpha, view_index=view, stamp_ns=stamps, sigma_px=sig, minor_axis_px=minor)
+                   alpha_rad=alpha, view_index=view, stamp_ns=stamps, sigma_px=sig, minor_axis_px=minor,
+                   systematic_px=syst)
 
     @property
     def n_obs(self) -> int:
@@ -184,7 +202,7 @@ class CentreObservations:
         pick = lambda a: None if a is None else a[m]
         return CentreObservations(self.uv_px[m], self.sphere_index[m], self.alpha_rad[m],
                                   self.view_index[m], pick(self.stamp_ns), pick(self.sigma_px),
-                                  pick(self.minor_axis_px))
+                                  pick(self.minor_axis_px), pick(self.systematic_px))
 
     def first_view(self) -> "CentreObservations":
         """Observations of the first projection (smallest view_index): the paper's j = 1."""

@@ -125,6 +125,9 @@ class StaticResult(FitResult):
         d x / d (calibrated centres in {OF}), flattened sphere by sphere.
     centre_uncertainty_m : ndarray of shape (N,) or None
         Standard uncertainty of each calibrated centre (per coordinate) used.
+    systematic_sensitivity : ndarray of shape (n,) or None
+        The solution's shift for the observations' shared systematic pattern at one standard
+        deviation (CentreObservations.systematic_px): its outer product is in ``covariance``.
     """
 
     n_spheres: int
@@ -141,6 +144,7 @@ class StaticResult(FitResult):
     covariance_noise: np.ndarray | None = field(default=None, repr=False)
     centre_sensitivity: np.ndarray | None = field(default=None, repr=False)
     centre_uncertainty_m: np.ndarray | None = field(default=None, repr=False)
+    systematic_sensitivity: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def w(self) -> np.ndarray:
@@ -180,6 +184,7 @@ class StaticResult(FitResult):
             "loss": self.loss, "f_scale_px": self.f_scale_px, "outcome": self.outcome,
             "noise": None if self.noise is None else self.noise.to_dict(),
             "std_noise_only": None if self.covariance_noise is None else np.sqrt(np.maximum(np.diag(self.covariance_noise), 0)),
+            "std_systematic": None if self.systematic_sensitivity is None else np.abs(self.systematic_sensitivity),
             "terms": [t.name for t in self.terms],
             "strong_correlations": [list(c) for c in self.strong_correlations(0.9)],
             "geometry_df": None if g is None else {
@@ -349,9 +354,14 @@ def static_uncertainty(x, kern: StaticKernel, obs: CentreObservations, sigma, n_
     ``evaluated`` = (f (2Q,), J (2Q, n)) at ``x`` if already known (the solver's last LM
     iterate), else the kernel is evaluated.
 
+    With ``obs.systematic_px`` (a pattern shared by every observation, one sd), the solution's
+    linear response to it, ``d = (J^T W J)^-1 J^T W s`` (:func:`systematic_response`), and its
+    outer product, added to the covariance.
+
     Returns
     -------
-    (CovarianceInfo, NoiseModel, cov_noise (n, n), centre_sensitivity (n, 3N) or None, covariance (n, n))
+    (CovarianceInfo, NoiseModel, cov_noise (n, n), centre_sensitivity (n, 3N) or None, covariance (n, n),
+    systematic_sensitivity (n,) or None)
     """
     if evaluated is None:
         r, jac = kern.evaluate(x)
@@ -379,10 +389,25 @@ def static_uncertainty(x, kern: StaticKernel, obs: CentreObservations, sigma, n_
         with np.errstate(invalid="ignore", divide="ignore"):
             infl = np.sqrt(np.diag(cov_noise) / np.diag(without))
         noise = replace(noise, track_sd_inflation=tuple(float(v) for v in infl))
+    d_sys = systematic_response(obs, jt, w, cov.normal_inverse)
+    total = cov_noise if d_sys is None else cov_noise + np.outer(d_sys, d_sys)
     if u_c is None:
-        return cov, noise, cov_noise, None, cov_noise
+        return cov, noise, cov_noise, None, total, d_sys
     sens = _centre_sensitivity(jt.T, w, x, obs, cov.normal_inverse, n_spheres)
-    return cov, noise, cov_noise, sens, cov_noise + (sens * np.repeat(u_c ** 2, 3)) @ sens.T
+    return cov, noise, cov_noise, sens, total + (sens * np.repeat(u_c ** 2, 3)) @ sens.T, d_sys
+
+
+def systematic_response(obs: CentreObservations, jt, weights, normal_inverse):
+    """(n,) linear response of a weighted least-squares solution to the observations' shared
+    systematic pattern ``obs.systematic_px`` (one sd; None when there is none): with residuals
+    model - observed, observed + s moves the solution by ``(J^T W J)^-1 J^T W s``. ``jt`` (n, 2Q)
+    and ``weights`` (2Q,) in blocked order (all columns, then all rows)."""
+    s = obs.systematic_px
+    if s is None or not np.any(s):
+        return None
+    sb = np.concatenate([s[:, 0], s[:, 1]])
+    w2 = np.asarray(weights, dtype=float) ** 2
+    return normal_inverse @ (np.asarray(jt) @ (w2 * sb))
 
 
 #: hypotheses tried when a fit fails: (description, what to check, transform of (obs, detector))
@@ -602,7 +627,7 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
     at_x = res.status != 4 or "chord" not in res.message
     unc = static_uncertainty(res.x, kern, obs, sigma, len(centres), centre_uncertainty_m, cond_limit,
                              weights=fit_weights, evaluated=(res.residuals, res.jac) if at_x else None)
-    cov, noise, cov_noise, centre_sens, covariance = unc
+    cov, noise, cov_noise, centre_sens, covariance, d_sys = unc
     if loc is not None:
         cls, fac = loc
         noise = replace(noise, location_factor=tuple(float(v) for v in fac),
@@ -640,4 +665,4 @@ def solve_static(obs: CentreObservations, centres_of_m, detector: DetectorSpec, 
         n_obs=obs.n_obs, n_views=obs.n_views, n_spheres=obs.n_spheres_seen, condition=cov.condition,
         geometry=geom, x0=start, loss=loss, f_scale_px=f_used, terms=terms, centres_of_m=centres,
         weights=kern.interleave(res.weights), outcome=outcome, noise=noise, covariance_noise=cov_noise,
-        centre_sensitivity=centre_sens, centre_uncertainty_m=u_c)
+        centre_sensitivity=centre_sens, centre_uncertainty_m=u_c, systematic_sensitivity=d_sys)

@@ -18,5 +18,7 @@ def observation_array_msg(fr, stamp, detector):
             sphere_id=int(fr.ids[i]), flag=int(fr.flag[i]), reason=str(fr.reason[i]),
             col_px=f(fr.centre_px[i, 0]), row_px=f(fr.centre_px[i, 1]), sigma_px=f(fr.sigma_px[i]),
             semi_major_px=f(fr.semi_axes_px[i, 0]), semi_minor_px=f(fr.semi_axes_px[i, 1]),
-            angle_rad=f(fr.angle_rad[i]), fit_rms_px=f(fr.fit_rms_px[i])))
+            angle_rad=f(fr.angle_rad[i]), fit_rms_px=f(fr.fit_rms_px[i]),
+            systematic_col_px=0.0 if fr.systematic_px is None else f(fr.systematic_px[i, 0]),
+            systematic_row_px=0.0 if fr.systematic_px is None else f(fr.systematic_px[i, 1])))
     return m
