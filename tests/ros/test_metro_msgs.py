@@ -124,3 +124,31 @@ def test_two_processes_over_dds(start_node, ros_node):
     # bytes from a raw subscription are exact: our size computation agrees with the wire
     assert len(raw[0]) == cdr_size(m)
     assert deserialize_message(raw[0], EstimateStamped) == m
+
+
+def test_systematic_pattern_survives_the_observation_message():
+    """The detector's shared systematic pattern (FrameResult.systematic_px) reaches a solver node's
+    accumulator through SphereObservation systematic_col_px / systematic_row_px; rejections carry
+    none; a non-finite value reads as 0, and a frame without a pattern sends zeros."""
+    from ct_calib_nodes.core.ct_pipeline import FrameResult
+    from ct_calib_nodes.core.geometry import DetectorSpec
+    from ct_calib_nodes.io.observations_msg import frame_observations
+    from ct_calib_nodes.io.observations_out import observation_array_msg
+
+    n = 4
+    sysp = np.array([[1.5e-4, -2.5e-4], [0.0, 3e-5], [np.nan, np.nan], [np.inf, 1e-4]])
+    fr = FrameResult(stamp_ns=7_000_000_000, alpha_rad=0.5, srd_reported_m=0.3, ids=np.array([1, 2, -1, 3]),
+                     flag=np.array([0, 0, 1, 0], np.uint8), reason=("", "", "overlap", ""),
+                     centre_px=np.arange(2 * n, dtype=float).reshape(n, 2) + 100.0, sigma_px=np.full(n, 0.01),
+                     semi_axes_px=np.full((n, 2), 5.0), angle_rad=np.zeros(n), fit_rms_px=np.full(n, 0.02),
+                     systematic_px=sysp)
+    stamp = EstimateStamped().header.stamp
+    stamp.sec = 7
+    msg = deserialize_message(serialize_message(observation_array_msg(fr, stamp, DetectorSpec(512, 512, 4e-4))),
+                              SphereObservationArray)
+    out = frame_observations(msg, {1: 0, 2: 1, 3: 2})
+    np.testing.assert_array_equal(out[3], [0, 1, 2])
+    np.testing.assert_array_equal(out[8], [[1.5e-4, -2.5e-4], [0.0, 3e-5], [0.0, 0.0]])
+    fr0 = FrameResult(**{**fr.__dict__, "systematic_px": None})
+    out0 = frame_observations(observation_array_msg(fr0, stamp, DetectorSpec(512, 512, 4e-4)), {1: 0, 2: 1, 3: 2})
+    np.testing.assert_array_equal(out0[8], np.zeros((3, 2)))
