@@ -316,7 +316,6 @@ def campaign_error_map(acc: CampaignAccumulator, motion_results: dict, static: S
         if getattr(r, "systematic_shift", None) is not None:
             dsys[i, :, 0] = r.systematic_shift
     srd = np.array([acc.positions[k].srd_reported_m for k in ks])
-    d_static = static.systematic_sensitivity
     if have_sens and have_centres:
         shared = np.diag(np.repeat(np.asarray(u_c) ** 2, 3))
         if have_sys:
@@ -324,8 +323,8 @@ def campaign_error_map(acc: CampaignAccumulator, motion_results: dict, static: S
             shared = np.block([[shared, np.zeros((len(shared), 1))], [np.zeros((1, len(shared))), np.ones((1, 1))]])
         joint = joint_motion_covariance(covs, sens, s_noise, csens, shared)
     elif have_sens:
-        s_cov = static.covariance - (0.0 if d_static is None else np.outer(d_static, d_static))
-        joint = joint_motion_covariance(covs, sens, s_cov, *((dsys, np.ones((1, 1))) if have_sys else ()))
+        joint = joint_motion_covariance(covs, sens, static.covariance_without_systematic,
+                                        *((dsys, np.ones((1, 1))) if have_sys else ()))
     else:
         joint = joint_motion_covariance(covs, *((None, None, dsys, np.ones((1, 1))) if have_sys else ()))
     return error_map(srd, motions, joint, definition=definition, name=name,

@@ -417,7 +417,9 @@ class FrameDetections:
     systematic_px : ndarray of shape (M, 2) or None
         One standard deviation of a systematic error shared by every centre of the recording
         [px]: the blur correction of the frame-wide background gradient is applied at
-        ``DetectionSettings.frame_gradient_share`` of its full value ``c``, and the right share
+        ``DetectionSettings.frame_gradient_share`` of its ambiguous part ``c`` (the measured edge
+        spread less the detector's own bilinear sampling, ``BILINEAR_VAR_PX2``, which is always
+        corrected), and the right share
         lies anywhere in [0, 1] (0 for a gain after the blur, 1 for a fluence gradient), so the
         error is ``(h - share) c`` with h uniform: sd ``c sqrt(1/12 + (share - 1/2)^2)``. Its sign
         is the same in every frame, so it does not average out: the solvers propagate it as a

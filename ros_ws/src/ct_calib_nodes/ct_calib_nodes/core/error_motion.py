@@ -293,10 +293,9 @@ def solve_error_motion(obs_k: CentreObservations, static, detector: DetectorSpec
     if include_static_uncertainty and static_res is not None and success:
         sens = _static_sensitivity(res.x, jt.T, w, cov.normal_inverse, static_res, obs, detector)
         d_static = static_res.systematic_sensitivity
-        if static_res.covariance_noise is not None:
-            s_noise = static_res.covariance_noise
-        else:           # the total: without the systematic, which d_sys carries below
-            s_noise = static_res.covariance - (0.0 if d_static is None else np.outer(d_static, d_static))
+        # the noise part (or the total without the systematic, which d_sys carries below)
+        s_noise = (static_res.covariance_without_systematic if static_res.covariance_noise is None
+                   else static_res.covariance_noise)
         cov_total = cov_cond + sens @ s_noise @ sens.T
         # the shared systematic pattern moves this position's centres and the static geometry alike
         d_direct = systematic_response(obs, jt, w, cov.normal_inverse)

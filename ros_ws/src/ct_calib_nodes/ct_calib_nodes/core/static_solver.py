@@ -161,6 +161,13 @@ class StaticResult(FitResult):
         """Standard uncertainties sqrt(diag(covariance)), shape (n,)."""
         return np.sqrt(np.maximum(np.diag(self.covariance), 0.0))
 
+    @property
+    def covariance_without_systematic(self) -> np.ndarray:
+        """``covariance`` less the shared systematic pattern's ``d d^T`` (for propagation that carries
+        the pattern separately, with its correlation across stage positions)."""
+        d = self.systematic_sensitivity
+        return self.covariance if d is None else self.covariance - np.outer(d, d)
+
     def strong_correlations(self, threshold: float = 0.9):
         """Parameter pairs with |correlation| >= threshold: list of (name_a, name_b, rho)."""
         c = self.correlation
