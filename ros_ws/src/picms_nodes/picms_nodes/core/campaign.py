@@ -92,7 +92,9 @@ def simulate_session(truth: CellTruth, rng, *, pattern=None, dwell_s: float = 2.
     for k, x in enumerate(tt):
         name = names[k % len(names)]
         p = smr_position_stage(truth, name, st.true_q(x), cell["tracker"]["probe_smr"])
-        rec.tracker.append((int(round(x * 1e9)), name, tracker_reading(truth, p, rng)))
+        probe = name == cell["tracker"]["probe_smr"]
+        stamp = int(round((x + truth.physics.tracker_lag_s) * 1e9))     # hidden clock lag
+        rec.tracker.append((stamp, name, tracker_reading(truth, p, rng, probe=probe)))
     for x in frame_times:
         q = st.true_q(x)
         stamp = int(round(x * 1e9))

@@ -15,6 +15,12 @@ b + A q, where the columns of A are the unit travel directions (upper-triangular
 Hidden physics (off by default, never told to the solvers):
 - `hidden_distortion`: the lenses distort (true D) but CameraInfo carries D = 0.
 - `tracker_scale_ppm`: the tracker's lengths are scaled by (1 + s) about its origin.
+- `tracker_encoder_ppm` (e_az, e_el): the tracker's azimuth and elevation encoders read (1 + e) times
+  the true angles (azimuth about the tracker frame's z axis from its x axis, elevation from its xy plane).
+- `smr_centring_m` (3,): the SMR*'s optical centre sits this far (tracker frame) from its sphere
+  centre, which is what the cameras see (X*); every tracker reading of the SMR* carries it.
+- `tracker_lag_s`: the tracker's stamps run late by this against the cameras' and stage's clock
+  (negative: early); a reading stamped t was taken at t - lag.
 - `camera_tilt_drift_rad_per_s`, `camera_shift_drift_m_per_s`: each camera mount drifts steadily
   during the session (thermal): it tilts about an axis perpendicular to its optical axis and its
   centre moves, each in a random direction per camera (own generator seeded from the cell), at
@@ -60,6 +66,9 @@ class Physics:
     read_noise_dn: float = 1.2
     tracker_sigma_m: float | None = None   # per-axis sd; None: (15 um + 6 um/m * L) / 2
     tracker_scale_ppm: float = 0.0         # hidden physics: tracker length scale error
+    tracker_encoder_ppm: tuple = (0.0, 0.0)          # hidden: azimuth, elevation angle-scale errors
+    smr_centring_m: tuple = (0.0, 0.0, 0.0)          # hidden: SMR* optical centre off its sphere centre
+    tracker_lag_s: float = 0.0             # hidden: tracker stamps late by this (s; negative: early)
     squareness_sd_rad: float = 5e-5
     stage_resolution_m: float = 6.0e-6
     tracker_distance_m: float = 2.4

@@ -6,9 +6,10 @@ oscillation along the move) and settles. The encoders read the true axis positio
 `encoder_resolution_m`, continuously, so ringing is visible in joint_states.
 
 Tracker: readings of one SMR centre at a time, round-robin, each with its own stamp; noise
-per axis from the stated uncertainty (15 um + 6 um/m, k = 2, so u = 7.5 um + 3 um/m), and an
-optional hidden length-scale error (1 + s) about the tracker origin. A 6-DOF probe-pose
-reading is also provided.
+per axis from the stated uncertainty (15 um + 6 um/m, k = 2, so u = 7.5 um + 3 um/m), and
+optional hidden errors (cell.Physics): a length scale (1 + s) about the tracker origin, azimuth
+and elevation encoder scale errors, and the SMR*'s centring error in its nest. (A clock lag is
+applied by whoever stamps the readings.) A 6-DOF probe-pose reading is also provided.
 """
 from __future__ import annotations
 
@@ -115,10 +116,30 @@ class StageSim:
         return np.round(self.true_q(t) / self.encoder_resolution_m) * self.encoder_resolution_m
 
 
-def tracker_reading(truth: CellTruth, p_stage, rng) -> np.ndarray:
-    """One tracker reading (3,) of a point at p_stage (3,) (stage frame), tracker frame, m."""
-    p_t = truth.to_tracker(p_stage)[0] * (1.0 + truth.physics.tracker_scale_ppm * 1e-6)
-    return p_t + rng.normal(0.0, truth.tracker_sigma_m(), 3)
+def tracker_reading(truth: CellTruth, p_stage, rng, probe: bool = False) -> np.ndarray:
+    """One tracker reading (3,) of an SMR centred at p_stage (3,) (stage frame), tracker frame, m.
+
+    `probe`: the reading is of the SMR* (its centring error applies)."""
+    ph = truth.physics
+    p_t = truth.to_tracker(p_stage)[0]
+    if probe:
+        p_t = p_t + np.asarray(ph.smr_centring_m, float)
+    return tracker_errors(p_t, ph.tracker_scale_ppm, ph.tracker_encoder_ppm) + rng.normal(0.0, truth.tracker_sigma_m(), 3)
+
+
+def tracker_errors(p_t, scale_ppm: float = 0.0, encoder_ppm=(0.0, 0.0)) -> np.ndarray:
+    """What the tracker reads for the true tracker-frame point p_t (3,): its distance meter reads
+    (1 + s) times the range, its encoders (1 + e_az) times the azimuth (about z, from x) and
+    (1 + e_el) times the elevation (from the xy plane)."""
+    p_t = np.asarray(p_t, float)
+    e_az, e_el = (float(v) * 1e-6 for v in encoder_ppm)
+    s = 1.0 + float(scale_ppm) * 1e-6
+    if e_az == 0.0 and e_el == 0.0:
+        return p_t * s
+    r = np.linalg.norm(p_t)
+    az = np.arctan2(p_t[1], p_t[0]) * (1.0 + e_az)
+    el = np.arcsin(p_t[2] / r) * (1.0 + e_el)
+    return r * s * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
 
 
 def smr_position_stage(truth: CellTruth, name: str, q, probe_smr: str = "smr_star") -> np.ndarray:

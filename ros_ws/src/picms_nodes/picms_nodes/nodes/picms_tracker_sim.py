@@ -4,12 +4,17 @@ Reads one SMR at a time, round-robin over the constellation and the SMR* (when p
 each reading with its own stamp, on /picms/tracker/smr/<name> (geometry_msgs/PointStamped,
 frame_id tracker); and the 6-DOF probe pose on /picms/tracker/probe_pose. The probe body's
 position comes from the latest /picms/stage/joint_states. Noise: u = (15 um + 6 um/m L) / 2 per
-axis; hidden tracker_scale_ppm scales all lengths about the tracker origin.
+axis; hidden tracker_scale_ppm scales all lengths about the tracker origin, tracker_encoder_ppm
+stretches the azimuth / elevation readings, smr_centring_um offsets every SMR* reading and
+tracker_lag_ms stamps the readings late (cell.Physics; never told to the solvers).
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from geometry_msgs.msg import PointStamped, PoseStamped
+from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import JointState
@@ -28,6 +33,9 @@ PARAMS = {
     "constellation": (list(CONSTELLATION), "SMRs on the probe body that the tracker reads [-]"),
     "pose_every": (10, "publish a 6-DOF probe pose after this many SMR readings [count]"),
     "noise_seed": (2, "seed of the reading noise [-]"),
+    "tracker_encoder_ppm": ([0.0, 0.0], "hidden: azimuth, elevation encoder scale errors [ppm]"),
+    "smr_centring_um": ([0.0, 0.0, 0.0], "hidden: SMR* optical centre off its sphere centre, tracker frame [um]"),
+    "tracker_lag_ms": (0.0, "hidden: reading stamps late by this against the cell's clock [ms]"),
 }
 
 
@@ -36,6 +44,12 @@ class PicmsTrackerSim(Node):
         super().__init__("picms_tracker_sim")
         self.p = p = declare_parameters(self, PARAMS)
         self.truth = truth_from_params(p)
+        enc, cen = [float(v) for v in p["tracker_encoder_ppm"]], [float(v) for v in p["smr_centring_um"]]
+        if len(enc) != 2 or len(cen) != 3:
+            raise ValueError(f"tracker_encoder_ppm needs 2 values and smr_centring_um 3, got {enc} and {cen}")
+        self.truth = replace(self.truth, physics=replace(
+            self.truth.physics, tracker_encoder_ppm=tuple(enc), smr_centring_m=tuple(1e-6 * v for v in cen),
+            tracker_lag_s=1e-3 * float(p["tracker_lag_ms"])))
         self.names = [n for n in p["constellation"] if n]
         unknown = [n for n in self.names if n not in self.truth.constellation_stage]
         if unknown:
@@ -66,9 +80,10 @@ class PicmsTrackerSim(Node):
             return
         name = self.names[self.k % len(self.names)]
         self.k += 1
-        p = tracker_reading(self.truth, smr_position_stage(self.truth, name, self.q), self.rng)
+        p = tracker_reading(self.truth, smr_position_stage(self.truth, name, self.q), self.rng,
+                            probe=name == "smr_star")
         m = PointStamped()
-        m.header.stamp = self.get_clock().now().to_msg()
+        m.header.stamp = (self.get_clock().now() + Duration(nanoseconds=int(round(self.truth.physics.tracker_lag_s * 1e9)))).to_msg()
         m.header.frame_id = "tracker"
         m.point.x, m.point.y, m.point.z = (float(v) for v in p)
         self.pubs[name].publish(m)
