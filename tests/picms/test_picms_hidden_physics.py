@@ -47,3 +47,31 @@ def test_tracker_scale_error_biases_tracker_coordinates_only(sessions):
     # the tracker-vs-encoder scale comparison sees the change (over 12 mm travels its
     # resolution is a few hundred ppm, so it flags gross errors only; documented)
     assert np.all(np.abs(res2.scale_ppm - res.scale_ppm - s_ppm) < 4 * np.hypot(res2.u_scale_ppm, res.u_scale_ppm))
+
+
+def test_tracker_encoder_error_matches_the_catalogue_basis():
+    # the simulator's encoder model (angles read (1 + e) times true) and the engine's linear basis of
+    # tracker_angular_encoder (a stretch along the azimuth / elevation tangents, growing with the angle
+    # travelled) are written independently; over the cell's travel they must agree
+    from picms_nodes.core import picms_discrepancy as pd
+    from picms_nodes.core.instruments import tracker_errors
+    rng = np.random.default_rng(5)
+    for _ in range(5):
+        d = rng.standard_normal(3)
+        X0 = d / np.linalg.norm(d) * rng.uniform(1.5, 4.0)
+        dq = rng.uniform(-6e-3, 6e-3, (12, 3))
+        e = rng.normal(0.0, 50.0, 2)                      # ppm, large enough to beat rounding
+        ctx = {"X_T": X0 + dq, "dq": dq}
+        basis = pd._dX_encoder(ctx) * 1e-6                # (N, 3, 2) m per unit e
+        sim = np.array([tracker_errors(X0 + v, 0.0, e) - tracker_errors(X0, 0.0, e) - v for v in dq]).ravel()
+        model = (basis @ (e * 1e-6)).ravel()
+        # the angle read at the reference (e times the absolute angle) turns the whole cell rigidly: the
+        # calibration's tracker-to-stage rotation and X* absorb it, so compare what neither can absorb
+        rigid = np.vstack([np.hstack([np.eye(3), -np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])])
+                           for v in dq])
+        P = np.eye(rigid.shape[0]) - rigid @ np.linalg.pinv(rigid)
+        # the basis is the exact first-order change: what is left is of order e^2 (rounding here)
+        assert np.max(np.abs(P @ (sim - model))) < 1e-3 * np.max(np.abs(P @ model))
+        # and that part is of the first order: e times the travel
+        assert np.max(np.abs(P @ model)) > 0.1 * np.abs(e).max() * 1e-6 * np.abs(dq).max()
+

@@ -203,14 +203,19 @@ def _dX_tracker_scale(c):
 
 
 def _dX_encoder(c):
-    # azimuth / elevation angle-scale errors: displacement along each angle's tangent at the cell,
-    # proportional to the angle travelled since the reference station
-    X = c["X_T"].mean(0)
-    t_az = np.cross([0.0, 0.0, 1.0], X)
-    t_az /= max(np.linalg.norm(t_az), 1e-12)
-    t_el = np.cross(X / np.linalg.norm(X), t_az)
-    dX = c["dq"] @ (c["R_ts"] @ c["A"]).T
-    return 1e6 * np.stack([np.outer(dX @ t, t) for t in (t_az, t_el)], 2)
+    # azimuth / elevation angle-scale errors: the tracker reads (1 + e) times its angles (azimuth about its
+    # z axis from x, elevation from the xy plane), so each station's reading moves by e_az az r cos(el)
+    # along its azimuth tangent and e_el el r along its elevation tangent, at its own angles. The part
+    # common to the stations (X*'s position, a turn of the cell about the tracker) is the nominal fit's;
+    # at elevation el the elevation term also turns the cell differently at each azimuth (not rigid), so
+    # the tangents are taken per station, not once at the cell
+    X = np.asarray(c["X_T"], float)
+    r = np.linalg.norm(X, axis=1)
+    az, el = np.arctan2(X[:, 1], X[:, 0]), np.arcsin(np.clip(X[:, 2] / np.maximum(r, 1e-12), -1, 1))
+    t_az = np.stack([-np.sin(az), np.cos(az), np.zeros_like(az)], 1)
+    t_el = np.stack([-np.sin(el) * np.cos(az), -np.sin(el) * np.sin(az), np.cos(el)], 1)
+    b = np.stack([(az * r * np.cos(el))[:, None] * t_az, (el * r)[:, None] * t_el], 2)
+    return 1e6 * (b - b.mean(0, keepdims=True))
 
 
 def _dX_centring(c):
@@ -302,7 +307,8 @@ CATALOGUE = (
               "along the azimuth and elevation tangents at the cell",
               ("e_az", "e_el"), ("1", "1"), "ppm of the angle (rms)", 1e6,
               "readings over a wide angular range, or a two-face (front / back sight) test of the tracker",
-              trk=_dX_encoder, per_camera=False, plausible_max=1e4),
+              # 1000 ppm of a 1 rad turn is 1 mrad (2.4 mm at 2.4 m), far beyond a working tracker's angle MPE
+              trk=_dX_encoder, per_camera=False, plausible_max=1000.0),
     PicmsTerm("smr_centring", "SMR centring error in its nest",
               "the SMR*'s optical centre is off its sphere centre (or the nest seat): every tracker reading of "
               "X* carries the same offset", ("ex", "ey", "ez"), ("m", "m", "m"), "um (rms over axes)", 1e6,
