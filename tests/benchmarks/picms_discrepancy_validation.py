@@ -31,6 +31,22 @@ still shows there) and `short`
 - principal_point_error (3 px sd in CameraInfo): absorbed by the camera rotation on every acquisition
   of this cell; must be reported as not observable, never named.
 
+Tracker effects (cell.Physics; paired with each seed's clean grid recording: the same frames, detections,
+stage readings and tracker noise, only the tracker's errors added; the tracker noise here is 3 um per axis
+per station after averaging, over a 12 mm travel):
+
+- tracker_length_scale: 5 ppm sd (weather-station errors of a few K or hPa; tracker scale MPE); the
+  cell's travel cannot reveal it (limit ~400 ppm): the engine must report the limit and name nothing.
+  `tracker_scale_gross` draws 500-900 ppm, beyond any working tracker (air left uncompensated is
+  270 ppm) but below the catalogue's plausibility bound (1000 ppm), only to show the term named and
+  sized where it is visible;
+- tracker_angular_encoder: 2 ppm sd of the angle per encoder (the tracker's angular MPE, ~3 urad, over
+  a half turn); not visible over the cell's few mrad;
+- smr_centring: 5 um sd per axis (1.5" SMR centring grades +-2.5 to +-12.7 um): absorbed by X*; the
+  calibrated X* must sit where the tracker reads the SMR*'s optical centre, and nothing be named;
+- tracker_timing_lag: 10-40 ms either sign (unsynchronised clocks): settled stations only, so it
+  must move nothing.
+
 Clean controls: the grid acquisition with a rigid stage and the true CameraInfo, on every seed.
 Prints one JSON line of figures (per-row details on stderr).
 """
@@ -45,7 +61,7 @@ from multiprocessing import Pool
 
 import numpy as np
 
-from picms_nodes.core import campaign, cell, pipeline
+from picms_nodes.core import campaign, cell, instruments, pipeline
 from picms_nodes.core import picms_discrepancy as pd
 from picms_nodes.core.calibrate import assign, calibrate, settled_windows
 from picms_nodes.core.camera import Intrinsics
@@ -72,6 +88,21 @@ JOBS = {
     "stage_default": ("grid", dict(stage_error_motions=True), ("true",)),
     "drift": ("grid", dict(camera_tilt_drift_rad_per_s=DRIFT_RAD_PER_S), ("true",)),
     "drift_fast": ("short", dict(camera_tilt_drift_rad_per_s=DRIFT_RAD_PER_S), ("true",)),
+}
+
+
+def _sign(rng):
+    return float(rng.choice([-1.0, 1.0]))
+
+
+# tracker effects: name -> physics overrides drawn from the seed's own generator; derived from the
+# seed's clean grid recording (tracker_job), never rendered again
+TRACKER_JOBS = {
+    "tracker_scale": lambda r: dict(tracker_scale_ppm=float(r.normal(0.0, 5.0))),
+    "tracker_scale_gross": lambda r: dict(tracker_scale_ppm=_sign(r) * float(r.uniform(500.0, 900.0))),
+    "tracker_encoder": lambda r: dict(tracker_encoder_ppm=tuple(float(v) for v in r.normal(0.0, 2.0, 2))),
+    "smr_centring": lambda r: dict(smr_centring_m=tuple(float(v) for v in r.normal(0.0, 5e-6, 3))),
+    "tracker_lag": lambda r: dict(tracker_lag_s=_sign(r) * float(r.uniform(0.010, 0.040))),
 }
 
 
@@ -109,13 +140,7 @@ def render_job(args):
         return pickle.loads(path.read_bytes())
     acq, over, variants = JOBS[job]
     c0 = time.process_time()
-    rng = np.random.default_rng(seed)
-    phys = cell.make_physics(rng, distortion_k1=-0.3, stage_error_motions=False)
-    truth = cell.make_cell(rng, replace(phys, **over))
-    kw = dict(ACQ[acq])
-    if kw.pop("fast", False):        # a 4x faster stage and shorter dwell: a short session
-        kw.update(stage=StageSim(resolution_m=phys.stage_resolution_m, vmax=0.02, amax=0.1), dwell_s=1.0)
-    rec, _ = campaign.simulate_session(truth, rng, mid_move_frames=0, **{"dwell_s": 1.2, **kw})
+    truth, rec = _session(seed, over, ACQ[acq], render=True)
     windows = settled_windows(rec.joint_stamps_ns, rec.joint_positions)
     out = {"seed": seed, "job": job, "acq": acq, "cell": rec.cell, "tracker": rec.tracker,
            "joint": (rec.joint_stamps_ns, rec.joint_positions), "variants": {}, "truth": truth_summary(truth)}
@@ -129,8 +154,45 @@ def render_job(args):
     return out
 
 
+def _truth(seed, over, rng=None):
+    rng = np.random.default_rng(seed) if rng is None else rng
+    phys = cell.make_physics(rng, distortion_k1=-0.3, stage_error_motions=False)
+    return cell.make_cell(rng, replace(phys, **over)), phys
+
+
+def _session(seed, over, kw, render):
+    """The seed's cell with physics overrides `over` and its session (the generator is consumed the same
+    way whatever `over` holds, so a tracker effect leaves the frames, stage and tracker noise unchanged)."""
+    rng = np.random.default_rng(seed)
+    truth, phys = _truth(seed, over, rng)
+    kw = dict(kw)
+    if kw.pop("fast", False):        # a 4x faster stage and shorter dwell: a short session
+        kw.update(stage=StageSim(resolution_m=phys.stage_resolution_m, vmax=0.02, amax=0.1), dwell_s=1.0)
+    rec, _ = campaign.simulate_session(truth, rng, mid_move_frames=0, render=render, **{"dwell_s": 1.2, **kw})
+    return truth, rec
+
+
+def tracker_job(base, job):
+    """A tracker effect on the seed's clean grid recording `base` (render_job's dict): the tracker stream
+    is simulated again with the effect; frames and detections are the clean ones (checked: same stage)."""
+    seed = base["seed"]
+    over = TRACKER_JOBS[job](np.random.default_rng([seed, 11, list(TRACKER_JOBS).index(job)]))
+    truth, rec = _session(seed, over, ACQ["grid"], render=False)
+    if not np.array_equal(rec.joint_positions, base["joint"][1]):
+        raise RuntimeError(f"seed {seed}: the re-simulated session differs from the clean recording")
+    return {**base, "job": job, "acq": "grid", "tracker": rec.tracker,
+            "variants": {"true": base["variants"]["true"]}, "truth": truth_summary(truth), "render_cpu_s": 0.0}
+
+
 def truth_summary(truth):
     s = {"k1": [float(c.true_intrinsics.D[0]) for c in truth.cameras]}
+    ph = truth.physics
+    x = truth.to_tracker(truth.smr_star_stage)[0]
+    s.update(tracker_scale_ppm=ph.tracker_scale_ppm, tracker_encoder_ppm=list(ph.tracker_encoder_ppm),
+             smr_centring_m=list(ph.smr_centring_m), tracker_lag_s=ph.tracker_lag_s,
+             # X* where an error-free tracker puts it, and where this tracker reads the SMR*'s optical centre
+             x_star_tracker=x.tolist(), x_star_tracker_read=instruments.tracker_errors(
+                 x + np.asarray(ph.smr_centring_m), ph.tracker_scale_ppm, ph.tracker_encoder_ppm).tolist())
     se = truth.stage_errors
     if se is not None:
         A = truth.A_travel
@@ -165,6 +227,11 @@ CASES = {
     ("drift_fast", "true"): ("camera_rotation_drift", "camera_rotation_drift", False),
     ("clean", "pp"): ("principal_point_error", "principal_point_error", False),
     ("small", "true"): ("clean_small", None, True),
+    ("tracker_scale", "true"): ("tracker_length_scale", "tracker_length_scale", False),
+    ("tracker_scale_gross", "true"): ("tracker_scale_gross", "tracker_length_scale", True),
+    ("tracker_encoder", "true"): ("tracker_angular_encoder", "tracker_angular_encoder", False),
+    ("smr_centring", "true"): ("smr_centring", "smr_centring", False),
+    ("tracker_lag", "true"): ("tracker_timing_lag", "tracker_timing_lag", False),
 }
 
 
@@ -185,6 +252,14 @@ def true_magnitude(acq, variant, term, span_s):
         return _rms(s - s.mean()) * 1e6
     if term == "camera_rotation_drift":
         return _rms([np.linalg.norm(np.array(w)[:2]) * span_s for w in t["drift_cam"]]) * 1e6
+    if term == "tracker_length_scale":
+        return abs(t["tracker_scale_ppm"])
+    if term == "tracker_angular_encoder":
+        return _rms(t["tracker_encoder_ppm"])
+    if term == "smr_centring":
+        return _rms(t["smr_centring_m"]) * 1e6
+    if term == "tracker_timing_lag":
+        return abs(t["tracker_lag_s"]) * 1e3
     return None
 
 
@@ -200,16 +275,19 @@ def analyse_one(acq, variant):
     f0 = out["findings"][0] if out["findings"] else None
     lim = out["detection_limits"].get(expect) if expect else None
     fl = out["noise_floor"]["independent_sd"]
+    # the calibrated X* against where this tracker reads the SMR*'s optical centre (z per axis)
+    xz = (np.asarray(res.p_tracker) - acq["truth"]["x_star_tracker_read"]) / np.sqrt(np.diag(res.cov_p_tracker))
     return {"seed": acq["seed"], "case": case, "acq": acq["acq"], "reveals": reveals, "expect": expect,
             "adequate": out["adequate"], "top1": f0["term"] if f0 else None,
             "terms": [f["term"] for f in out["findings"]] + [u["axis"] for u in out["unexplained"]],
             "degenerate_with": f0["degenerate_with"] if f0 else [],
-            "est": f0["magnitude"] if f0 else None, "sigma": f0["significance_sigma"] if f0 else None,
+            "est": f0["magnitude"] if f0 else None, "est_u": f0.get("magnitude_u") if f0 else None,
+            "sigma": f0["significance_sigma"] if f0 else None,
             "true": true_magnitude(acq, variant, expect, span) if expect else None,
             "limit": None if lim is None else lim["limit"], "cannot_see": None if lim is None else lim.get("cannot_see"),
             "held_out_before": out["fit_before"]["held_out_rms"], "held_out_after": out["fit_after"]["held_out_rms"],
             "floor_px": float(np.hypot(fl["u"], fl["v"]) / np.sqrt(2)), "session_s": span,
-            "cpu_s": time.process_time() - c0}
+            "x_star_z": xz.tolist(), "cpu_s": time.process_time() - c0}
 
 
 def summarise(rows):
@@ -222,6 +300,7 @@ def summarise(rows):
     def at_floor(r):
         return r["seed"] in clean_ho and r["held_out_after"] <= 1.25 * clean_ho[r["seed"]]
     out = {"clean_seeds": len(clean), "clean_false_alarms": sum(not r["adequate"] for r in clean),
+           "clean_x_star_z_rms": _rms([z for r in clean for z in r["x_star_z"]]) if clean else None,
            "clean_false_alarm_rate": sum(not r["adequate"] for r in clean) / max(len(clean), 1),
            "clean_false_alarm_terms": sorted({t for r in clean for t in r["terms"]}),
            "clean_held_out_median_px": float(np.median(list(clean_ho.values()))) if clean_ho else None,
@@ -248,6 +327,9 @@ def summarise(rows):
                 "held_out_after_over_clean_median": float(np.median([r["held_out_after"] / clean_ho[r["seed"]]
                                                                      for r in rr if r["seed"] in clean_ho] or [np.nan])),
                 "top1_terms": sorted({str(r["top1"]) for r in rr}),
+                # the size's error in its own stated uncertainty (the 15 % goal needs an effect ~7 u large)
+                "est_z": [round((r["est"] - r["true"]) / r["est_u"], 2) for r in rr
+                          if r["top1"] == r["expect"] and r["true"] and r.get("est_u")],
             }
         rn = [r for r in rows if r["case"] == case and not r["reveals"]]
         if rn:
@@ -259,6 +341,9 @@ def summarise(rows):
                 "limit_median": float(np.median([r["limit"] for r in rn if r["limit"]])) if any(r["limit"] for r in rn) else None,
                 "not_observable": sum(r["limit"] is None for r in rn),
                 "cannot_see": sorted({r["cannot_see"] for r in rn if r["cannot_see"]}),
+                "limit_above_true": sum(r["limit"] is not None and r["true"] is not None and r["limit"] > r["true"]
+                                        for r in rn),
+                "x_star_z_rms": _rms([z for r in rn for z in r["x_star_z"]]),
             }
     return out
 
@@ -270,7 +355,7 @@ def _analyse_task(args):
 
 def analyse_all(acqs, a):
     tasks = [(acq, v) for acq in sorted(acqs, key=lambda x: (x["seed"], x["job"])) for v in acq["variants"]
-             if (acq["job"], v) in CASES]
+             if (acq["job"], v) in CASES and (a.only is None or v == "true" or CASES[(acq["job"], v)][0] in a.only)]
     rows = []
     with Pool(a.jobs) as pool:                  # one calibration + analysis per task, in task order
         for r in pool.imap(_analyse_task, tasks, chunksize=1):
@@ -285,7 +370,7 @@ def analyse_all(acqs, a):
 def job_list(a):
     jobs = []
     for s in range(a.first, a.first + a.effect_seeds):
-        jobs += [(s, j) for j in JOBS]
+        jobs += [(s, j) for j in JOBS if a.only is None or j in a.only or j == "clean"]
     return jobs + [(s, "clean") for s in range(a.first + a.effect_seeds, a.first + a.clean_seeds)]
 
 
@@ -297,6 +382,8 @@ def main():
     ap.add_argument("--cache", default=None, help="directory for phase-1 detections (re-used when present)")
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--render-only", action="store_true")
+    ap.add_argument("--only", nargs="+", default=None, choices=sorted(set(JOBS) | set(TRACKER_JOBS) | {c[0] for c in CASES.values()}),
+                    help="effect rows to run (the clean controls always run; CameraInfo rows by case name)")
     a = ap.parse_args()
     if a.cache:
         pathlib.Path(a.cache).mkdir(parents=True, exist_ok=True)
@@ -310,6 +397,12 @@ def main():
                   file=sys.stderr, flush=True)
     if a.render_only:
         return
+    for x in acqs:                  # detections cached by an older version: its truth summary lacks X*
+        if "x_star_tracker_read" not in x["truth"]:
+            x["truth"] = truth_summary(_truth(x["seed"], JOBS[x["job"]][1])[0])
+    clean = {x["seed"]: x for x in acqs if x["job"] == "clean"}
+    acqs += [tracker_job(clean[s], j) for s in range(a.first, a.first + a.effect_seeds) for j in TRACKER_JOBS
+             if s in clean and (a.only is None or j in a.only)]
     print(json.dumps(analyse_all(acqs, a), default=float))
 
 

@@ -58,16 +58,21 @@ def test_offline_command_refuses_small_recording_and_bad_path(tmp_path, sessions
     assert discrepancy_cli.main([str(tmp_path / "missing"), "--out", str(out)]) == 2
 
 
-@pytest.fixture(scope="module")
-def grid_session():
-    # one cell rendered once on the grid acquisition (~15 s)
+def _grid_session(over=None, render=True):
     rng = np.random.default_rng(31)
     # a rigid stage: the simulator's default stage error motions are physics the calibration leaves out
     # (the engine names them as a stage axis scale error when they show): a clean control means only
     # modelled physics (picms_discrepancy.md, "Clean control")
-    truth = cell.make_cell(rng, cell.make_physics(rng, distortion_k1=-0.3, stage_error_motions=False))
-    rec, _ = campaign.simulate_session(truth, rng, pattern=pd.grid_pattern(), dwell_s=1.2, mid_move_frames=0)
+    truth = cell.make_cell(rng, cell.make_physics(rng, distortion_k1=-0.3, stage_error_motions=False, **(over or {})))
+    rec, _ = campaign.simulate_session(truth, rng, pattern=pd.grid_pattern(), dwell_s=1.2, mid_move_frames=0,
+                                       render=render)
     return truth, rec
+
+
+@pytest.fixture(scope="module")
+def grid_session():
+    # one cell rendered once on the grid acquisition (~15 s)
+    return _grid_session()
 
 
 @pytest.mark.slow
@@ -277,3 +282,35 @@ def test_floor_not_shrunk_by_structure_shared_across_a_stations_cameras():
     # measured: 40 % of the draws below 0.8 of the noise (min 0.25) with the shared part, none without
     # (min 1.03: the structure's own scatter stays in the floor, which is conservative)
     assert low[True] > 0.2 and low[False] == 0.0, low
+
+
+@pytest.mark.slow
+def test_realistic_tracker_errors_named_nowhere_and_reported(grid_session):
+    # the grid session again, with realistic tracker errors at once: a 5 ppm length scale, 2 ppm encoder
+    # scales, an SMR* 8 um off-centre, and stamps 30 ms early (an unsynchronised clock). The frames,
+    # stage and tracker noise are the clean session's (same generator stream); none of these can show
+    # over the cell's 12 mm travel with settled stations, so the engine must name nothing, state limits
+    # above these magnitudes for the two visible-in-principle terms and say why the other two are blind
+    truth, rec = grid_session
+    over = dict(tracker_scale_ppm=5.0, tracker_encoder_ppm=(2.0, -2.0), smr_centring_m=(8e-6, -5e-6, 3e-6),
+                tracker_lag_s=-0.030)
+    truth2, rec2 = _grid_session(over, render=False)
+    assert rec2.joint_positions.tobytes() == rec.joint_positions.tobytes()
+    assert [r[0] for r in rec2.tracker] == [r[0] - 30_000_000 for r in rec.tracker]
+    rec2.frames = rec.frames
+    res, _ = pipeline.calibrate_recording(rec2)
+    out = pd.run(res, rec2.camera_info)
+    assert out["adequate"], out["verdict"]
+    lim = out["detection_limits"]
+    assert lim["tracker_length_scale"]["limit"] > 5.0 * 10
+    assert lim["tracker_angular_encoder"]["limit"] > 2.0 * 10
+    assert lim["smr_centring"]["limit"] is None and "absorbed" in lim["smr_centring"]["cannot_see"]
+    assert lim["tracker_timing_lag"]["limit"] is None and "settled" in lim["tracker_timing_lag"]["cannot_see"]
+    # as the catalogue says: the calibrated X* is where this tracker reads the SMR*'s optical centre
+    from picms_nodes.core.instruments import tracker_errors
+    ph = truth2.physics
+    x_read = tracker_errors(truth.to_tracker(truth.smr_star_stage)[0] + np.asarray(ph.smr_centring_m),
+                            ph.tracker_scale_ppm, ph.tracker_encoder_ppm)
+    u = np.sqrt(np.diag(res.cov_p_tracker))
+    assert np.all(np.abs(res.p_tracker - x_read) < 4 * u)
+    assert np.linalg.norm(res.p_tracker - truth.to_tracker(truth.smr_star_stage)[0]) > 5e-6
