@@ -44,8 +44,10 @@ per station after averaging, over a 12 mm travel):
   a half turn); not visible over the cell's few mrad;
 - smr_centring: 5 um sd per axis (1.5" SMR centring grades +-2.5 to +-12.7 um): absorbed by X*; the
   calibrated X* must sit where the tracker reads the SMR*'s optical centre, and nothing be named;
-- tracker_timing_lag: 10-40 ms either sign (unsynchronised clocks): settled stations only, so it
-  must move nothing.
+- tracker_timing_lag: 10-40 ms either sign (unsynchronised clocks): invisible at the settled stations,
+  measured from the constellation readings during the moves between them (core/timing_lag.py);
+  `tracker_lag_settled` keeps only the readings at settled stations (a tracker triggered per station),
+  which cannot reveal it.
 
 Clean controls: the grid acquisition with a rigid stage and the true CameraInfo, on every seed.
 Prints one JSON line of figures (per-row details on stderr).
@@ -103,7 +105,11 @@ TRACKER_JOBS = {
     "tracker_encoder": lambda r: dict(tracker_encoder_ppm=tuple(float(v) for v in r.normal(0.0, 2.0, 2))),
     "smr_centring": lambda r: dict(smr_centring_m=tuple(float(v) for v in r.normal(0.0, 5e-6, 3))),
     "tracker_lag": lambda r: dict(tracker_lag_s=_sign(r) * float(r.uniform(0.010, 0.040))),
+    "tracker_lag_settled": lambda r: dict(tracker_lag_s=_sign(r) * float(r.uniform(0.010, 0.040))),
 }
+# rows whose tracker is read only at the settled stations (a tracker triggered per station): the moves that
+# reveal a clock lag carry no readings
+SETTLED_ONLY = {"tracker_lag_settled"}
 
 
 def info_variant(truth, kind, seed):
@@ -180,6 +186,9 @@ def tracker_job(base, job):
     truth, rec = _session(seed, over, ACQ["grid"], render=False)
     if not np.array_equal(rec.joint_positions, base["joint"][1]):
         raise RuntimeError(f"seed {seed}: the re-simulated session differs from the clean recording")
+    if job in SETTLED_ONLY:
+        win = settled_windows(rec.joint_stamps_ns, rec.joint_positions)
+        rec.tracker = [r for r in rec.tracker if any(w.start_ns <= r[0] <= w.end_ns for w in win)]
     return {**base, "job": job, "acq": "grid", "tracker": rec.tracker,
             "variants": {"true": base["variants"]["true"]}, "truth": truth_summary(truth), "render_cpu_s": 0.0}
 
@@ -231,7 +240,8 @@ CASES = {
     ("tracker_scale_gross", "true"): ("tracker_scale_gross", "tracker_length_scale", True),
     ("tracker_encoder", "true"): ("tracker_angular_encoder", "tracker_angular_encoder", False),
     ("smr_centring", "true"): ("smr_centring", "smr_centring", False),
-    ("tracker_lag", "true"): ("tracker_timing_lag", "tracker_timing_lag", False),
+    ("tracker_lag", "true"): ("tracker_timing_lag", "tracker_timing_lag", True),
+    ("tracker_lag_settled", "true"): ("tracker_timing_lag", "tracker_timing_lag", False),
 }
 
 
@@ -269,7 +279,8 @@ def analyse_one(acq, variant):
     c0 = time.process_time()
     stamps, pos = acq["joint"]
     res = calibrate(assign(settled_windows(stamps, pos), v["dets"], acq["tracker"]), v["info"], acq["cell"])
-    out = pd.run(res, v["info"])
+    out = pd.run(res, v["info"], motion={"joint_stamps_ns": stamps, "joint_positions": pos, "tracker": acq["tracker"],
+                                         "constellation": acq["cell"]["tracker"]["constellation"]})
     t_ns = res.design["t_ns"]
     span = (t_ns[-1] - t_ns[0]) * 1e-9
     f0 = out["findings"][0] if out["findings"] else None

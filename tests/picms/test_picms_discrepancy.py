@@ -94,6 +94,9 @@ def test_grid_clean_adequate_and_command_output(tmp_path, grid_session):
     assert discrepancy_cli.main([str(bag), "--cell", str(tmp_path / "picms_cell.yaml"), "--out", str(dest)]) == 0
     d = json.loads((dest / "discrepancy.json").read_text())
     assert set(d) >= KEYS and d["adequate"]
+    # the bag's streams reach the clock-lag analysis: no lag on the clean session, a limit below 2 ms
+    assert d["timing_lag"]["seen"] and abs(d["timing_lag"]["lag_s"]) < 4 * d["timing_lag"]["u_lag_s"]
+    assert 0 < d["detection_limits"]["tracker_timing_lag"]["limit"] < 2.0
     assert (dest / "report.md").read_text().splitlines()[0] == d["verdict"]
     assert (dest / "residuals.png").stat().st_size > 1000
 
@@ -285,12 +288,14 @@ def test_floor_not_shrunk_by_structure_shared_across_a_stations_cameras():
 
 
 @pytest.mark.slow
-def test_realistic_tracker_errors_named_nowhere_and_reported(grid_session):
+def test_realistic_tracker_errors_reported_and_the_lag_measured_on_the_moves(grid_session, grid_clean):
     # the grid session again, with realistic tracker errors at once: a 5 ppm length scale, 2 ppm encoder
-    # scales, an SMR* 8 um off-centre, and stamps 30 ms early (an unsynchronised clock). The frames,
-    # stage and tracker noise are the clean session's (same generator stream); none of these can show
-    # over the cell's 12 mm travel with settled stations, so the engine must name nothing, state limits
-    # above these magnitudes for the two visible-in-principle terms and say why the other two are blind
+    # scales, an SMR* 8 um off-centre, and stamps 30 ms early (an unsynchronised clock). The frames, stage
+    # and tracker noise are the clean session's (same generator stream). None of them can show at the
+    # settled stations over the cell's 12 mm travel: there the engine must name nothing, state limits
+    # above these magnitudes for the two visible-in-principle terms and say why the other two are blind.
+    # The moves between stations show the lag (30 ms at up to 5 mm/s is up to 150 um against ~15 um of
+    # reading noise): given the streams, the engine must name it and measure it, and nothing else
     truth, rec = grid_session
     over = dict(tracker_scale_ppm=5.0, tracker_encoder_ppm=(2.0, -2.0), smr_centring_m=(8e-6, -5e-6, 3e-6),
                 tracker_lag_s=-0.030)
@@ -314,3 +319,15 @@ def test_realistic_tracker_errors_named_nowhere_and_reported(grid_session):
     u = np.sqrt(np.diag(res.cov_p_tracker))
     assert np.all(np.abs(res.p_tracker - x_read) < 4 * u)
     assert np.linalg.norm(res.p_tracker - truth.to_tracker(truth.smr_star_stage)[0]) > 5e-6
+    # with the moves: the lag named and measured (the other three stay below their limits)
+    out = pd.run(res, rec2.camera_info, motion=pd.motion_of(rec2))
+    assert not out["adequate"] and [f["term"] for f in out["findings"]] == ["tracker_timing_lag"], out["verdict"]
+    p = out["findings"][0]["parameters"][0]
+    assert abs(p["value"] - (-0.030)) < 4 * p["u"] and p["u"] < 1e-3, p
+    assert out["verdict"].startswith("The nominal model leaves out a clock offset") and "early" in out["verdict"]
+    assert out["findings"][0]["held_out_rms_after_um"] < 0.5 * out["findings"][0]["held_out_rms_before_um"]
+    # and on the clean session the moves show no lag: a limit below 2 ms instead
+    res_clean, info, _ = grid_clean
+    clean = pd.run(res_clean, info, motion=pd.motion_of(rec))
+    assert clean["adequate"], clean["verdict"]
+    assert 0 < clean["detection_limits"]["tracker_timing_lag"]["limit"] < 2.0

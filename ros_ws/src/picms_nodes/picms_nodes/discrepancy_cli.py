@@ -75,7 +75,7 @@ def main(argv=None) -> int:
     from ct_calib_nodes.io.atomic import staged_outputs  # noqa: PLC0415
 
     from .core.calibrate import CalibrationError  # noqa: PLC0415
-    from .core.picms_discrepancy import run  # noqa: PLC0415
+    from .core.picms_discrepancy import motion_of, run  # noqa: PLC0415
     from .core.pipeline import calibrate_recording  # noqa: PLC0415
     from .io.files import read_cell  # noqa: PLC0415
     from .io.recording import find_namespace, iter_frames, read_recording  # noqa: PLC0415
@@ -94,7 +94,8 @@ def main(argv=None) -> int:
     print(f"calibrating {rec_path} ...", flush=True)
     try:
         res, _ = calibrate_recording(rec, frames=iter_frames(rec_path, rep, ns))
-        out = run(res, rec.camera_info, progress=lambda m: print(m, flush=True), max_terms=a.max_terms)
+        out = run(res, rec.camera_info, progress=lambda m: print(m, flush=True), max_terms=a.max_terms,
+                  motion=motion_of(rec))
     except (CalibrationError, ValueError) as exc:
         print(f"picms_discrepancy: no calibration to analyse: {exc}", file=sys.stderr)
         return 1

@@ -27,7 +27,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ct_calib_nodes.core.discrepancy import (BIC_THRESHOLD, Candidate, Dataset, analyse, finding_entry,
-                                             unexplained_entries, verdict_sentence)
+                                             required_noncentrality, sigma_from_chi2, unexplained_entries,
+                                             verdict_sentence)
+
+from . import timing_lag
 
 from .calibrate import CalibrationResult, _skew, travel_matrix
 from .camera import Intrinsics
@@ -316,13 +319,14 @@ CATALOGUE = (
               "or swapping it for another SMR", trk=_dX_centring, per_camera=False, plausible_max=100.0,
               blind="a constant offset of the SMR* reading is absorbed by X*'s position in the tracker frame "
                     "(it biases the calibrated X* by exactly the centring error)"),
-    PicmsTerm("tracker_timing_lag", "timing lag between tracker and camera clocks",
-              "tracker stamps offset from the cameras' by a constant lag; a reading then belongs to another "
-              "stage position", ("lag",), ("s",), "ms", 1e3,
-              "frames and readings taken while the stage moves at a known speed (the lag is the displacement "
-              "over the speed)", trk=_dX_lag, per_camera=False, plausible_max=1e3,
-              blind="only settled stations are used: the stage is at rest when frames and readings are taken, "
-                    "so a clock offset moves nothing"),
+    PicmsTerm("tracker_timing_lag", "timing lag between the tracker's and the stage's clocks",
+              "the tracker's stamps are offset from the stage's (and the cameras', which share them) by a constant "
+              "lag; a reading then belongs to another stage position", ("lag",), ("s",), "ms", 1e3,
+              "tracker readings while the stage moves (the moves between stations of any session: the lag is the "
+              "displacement over the speed)", trk=_dX_lag, per_camera=False, plausible_max=1e3,
+              # measured on the moves between stations instead (core/timing_lag.py, run(motion=...))
+              blind="the settled stations cannot show it: the stage is at rest when frames and readings are "
+                    "taken, so a clock offset moves nothing there"),
 )
 MIN_STATIONS = 15
 CATALOGUE_BY_ID = {t.id: t for t in CATALOGUE}
@@ -541,8 +545,65 @@ def _groups(t: PicmsTerm, n_cams: int) -> int:
     return n_cams if t.per_camera else len(t.params)
 
 
-def run(result: CalibrationResult, camera_info: dict, *, progress=None, max_terms: int = 3) -> dict:
-    """The Pixel Probe analysis; the discrepancy.json dict (same keys as CT) plus ``_arrays``."""
+def motion_of(rec) -> dict:
+    """The moving part of a recording (campaign.Recording or the offline reader's) for :func:`run`."""
+    return {"joint_stamps_ns": rec.joint_stamps_ns, "joint_positions": rec.joint_positions, "tracker": rec.tracker,
+            "constellation": list(rec.cell.get("tracker", {}).get("constellation", []))}
+
+
+def _timing(motion, limits, findings, by_id, say):
+    """tracker_timing_lag from the readings taken while the stage moves (core/timing_lag.py): its limit,
+    and a finding when it is significant and predicts held-out moves better; the estimate's dict."""
+    t = CATALOGUE_BY_ID["tracker_timing_lag"]
+    if motion is None:
+        return {"seen": False, "reason": "no stage or tracker streams given (settled stations only)"}
+    try:
+        lag = timing_lag.estimate(motion["joint_stamps_ns"], motion["joint_positions"], motion["tracker"],
+                                  motion["constellation"])
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        lag = {"seen": False, "reason": f"the moving readings could not be analysed: {exc}"}
+    if not lag["seen"]:
+        limits[t.id]["cannot_see"] = f"{t.blind}; and here: {lag['reason']}"
+        return lag
+    n, u = lag["n_readings"], lag["u_lag_s"]
+    ln_n = np.log(n)
+    lam = required_noncentrality(ln_n + BIC_THRESHOLD, 1)
+    limits[t.id] = {"limit": float(np.sqrt(lam) * u * 1e3), "unit": "ms", "reveal_by": t.reveal_by,
+                    "from": f"{n} constellation readings while the stage moved ({lag['n_moves']} moves)"}
+    d = (lag["lag_s"] / u) ** 2
+    gain = (lag["held_out_rms_before_m"] ** 2 - lag["held_out_rms_after_m"] ** 2) / lag["sigma_m"] ** 2
+    say(f"timing lag: {lag['lag_s'] * 1e3:.3f} +- {u * 1e3:.3f} ms from {n} moving readings; held-out rms "
+        f"{lag['held_out_rms_before_m'] * 1e6:.1f} -> {lag['held_out_rms_after_m'] * 1e6:.1f} um")
+    if d - ln_n >= BIC_THRESHOLD and gain > 0:
+        f = {"significance_sigma": sigma_from_chi2(d, 1), "delta_bic": float(d - ln_n), "cv_gain": float(gain),
+             "degenerate_with": [], "correlated_nominal": []}
+        e = finding_entry(by_id[t.id], f, [lag["lag_s"]], [u], abs(lag["lag_s"]) * 1e3, u * 1e3, "ms", set())
+        e.update(block="tracker readings while the stage moves",
+                 held_out_rms_before_um=lag["held_out_rms_before_m"] * 1e6,
+                 held_out_rms_after_um=lag["held_out_rms_after_m"] * 1e6)
+        findings.append(e)
+        findings.sort(key=lambda x: -x["delta_bic"])
+    return lag
+
+
+def _timing_verdict(f0, lag, others) -> str:
+    late = "late" if lag["lag_s"] > 0 else "early"
+    out = (f"The nominal model leaves out a clock offset between the tracker and the stage: the tracker's stamps "
+           f"run {abs(lag['lag_s']) * 1e3:.3g} +- {lag['u_lag_s'] * 1e3:.2g} ms {late} ({f0['significance_sigma']:.1f} "
+           f"sigma, {lag['n_readings']} constellation readings while the stage moved); with it their held-out "
+           f"residual falls from {lag['held_out_rms_before_m'] * 1e6:.3g} to {lag['held_out_rms_after_m'] * 1e6:.3g} um "
+           f"(reading scatter {lag['sigma_m'] * 1e6:.3g} um). The settled stations the calibration uses are not "
+           f"affected.")
+    if others:
+        out += " Also: " + "; ".join(f"{f['name']} ({f['magnitude']:.3g} {f['magnitude_unit']})" for f in others) + "."
+    return out
+
+
+def run(result: CalibrationResult, camera_info: dict, *, progress=None, max_terms: int = 3, motion=None) -> dict:
+    """The Pixel Probe analysis; the discrepancy.json dict (same keys as CT) plus ``_arrays``.
+
+    motion: :func:`motion_of` the recording (joint_states, tracker readings, constellation names), for the
+    terms only the moves between stations show (tracker_timing_lag); None: settled stations only."""
     say = progress or (lambda _m: None)
     ds, cands, ext = build(result, camera_info)
     nc = len(ext["cameras"])
@@ -577,6 +638,7 @@ def run(result: CalibrationResult, camera_info: dict, *, progress=None, max_term
             # our magnitude is an rms over cameras or parameters
             limits[c.id] = {"limit": lim["limit"] / np.sqrt(_groups(t, nc)), "unit": c.magnitude_unit,
                             "reveal_by": c.reveal_by, "absorbed_fraction": lim["absorbed_fraction"]}
+    lag = _timing(motion, limits, findings, by_id, say)
     unexplained = unexplained_entries(res["unexplained"])
     adequate = not findings and not unexplained
     fl = res["floor"]
@@ -596,6 +658,8 @@ def run(result: CalibrationResult, camera_info: dict, *, progress=None, max_term
         clean_examples=(f"no lens k1 above {fmt('lens_radial_k1', '')}, no differential stage axis scale above "
                         f"{fmt('stage_axis_scale', 'ppm')} and no camera tilt drift above "
                         f"{fmt('camera_rotation_drift', 'urad')} over the session").replace(" ,", ","))
+    if findings and findings[0]["term"] == "tracker_timing_lag":
+        verdict = _timing_verdict(findings[0], lag, findings[1:])
     xr = np.hstack([ds.jac] + [by_id[i].basis for i in res["chosen"]])
     r_after = ds.residual - xr @ res["beta"]
     m = ext["n_cam_rows"]
@@ -611,6 +675,7 @@ def run(result: CalibrationResult, camera_info: dict, *, progress=None, max_term
                       for t in CATALOGUE],
         "n_observations": int(m // 2), "n_tracker_residuals": int(ds.residual.size - m),
         "n_stations": ext["n_stations"], "bic_threshold": BIC_THRESHOLD,
+        "timing_lag": {k: v for k, v in lag.items() if k != "per_move"},
         "_arrays": {"residual_before": ds.residual[:m], "residual_after": r_after[:m], "station": ext["station_of"],
                     "camera": ext["cam_of"], "comp": ext["comp"]},
     }
