@@ -56,9 +56,10 @@ def _moves(stamps_ns, positions, tracker, names):
         m = {}
         for n, (tt, xx) in arr.items():
             sel = (tt >= a) & (tt <= b)
-            if sel.sum() >= 2:
+            k = int(sel.sum())
+            if k >= 2:
                 m[n] = xx[sel].mean(0)
-                scatter.append(xx[sel] - m[n])
+                scatter.append((xx[sel] - m[n]) * np.sqrt(k / (k - 1)))    # about a mean of k: unbiased
         means.append(m)
     Ms = {}
     for n in arr:
