@@ -35,6 +35,8 @@ def test_appendix_a_sessions_too_small_for_a_verdict(sessions):
     rec, _st, res, _ = sessions[0]
     with pytest.raises(ValueError, match="too few for a discrepancy verdict"):
         pd.run(res, rec.camera_info)
+    out, state, text, settled = pd.judge(res, rec.camera_info, pd.motion_of(rec))
+    assert out is None and state == "insufficient" and "too few" in text and not settled
 
 
 def _bag_writer():
@@ -326,6 +328,9 @@ def test_realistic_tracker_errors_reported_and_the_lag_measured_on_the_moves(gri
     assert abs(p["value"] - (-0.030)) < 4 * p["u"] and p["u"] < 1e-3, p
     assert out["verdict"].startswith("The nominal model leaves out a clock offset") and "early" in out["verdict"]
     assert out["findings"][0]["held_out_rms_after_um"] < 0.5 * out["findings"][0]["held_out_rms_before_um"]
+    # the live node's judgement: inadequate, but the settled stations (the calibration's data) are not in doubt
+    _out, state, text, settled = pd.judge(res, rec2.camera_info, pd.motion_of(rec2))
+    assert state == "inadequate" and not settled and text == out["verdict"]
     # and on the clean session the moves show no lag: a limit below 2 ms instead
     res_clean, info, _ = grid_clean
     clean = pd.run(res_clean, info, motion=pd.motion_of(rec))

@@ -545,6 +545,26 @@ def _groups(t: PicmsTerm, n_cams: int) -> int:
     return n_cams if t.per_camera else len(t.params)
 
 
+MOVING_BLOCK = "tracker readings while the stage moves"
+
+
+def judge(result: CalibrationResult, camera_info: dict, motion=None, *, max_terms: int = 3):
+    """The engine's verdict on a fresh calibration, for the live calibration node.
+
+    Returns (out or None, state, text, settled): state "adequate", "inadequate" or "insufficient" (too few
+    stations or data for a verdict: text says why); ``settled`` is true when a finding or unexplained
+    structure sits in the data the calibration rests on (the settled stations), so the calibration itself
+    is in doubt; a lag seen only on the moves between stations is not."""
+    try:
+        out = run(result, camera_info, motion=motion, max_terms=max_terms)
+    except ValueError as exc:
+        return None, "insufficient", str(exc), False
+    if out["adequate"]:
+        return out, "adequate", out["verdict"], False
+    settled = [f for f in out["findings"] if f.get("block") != MOVING_BLOCK]
+    return out, "inadequate", out["verdict"], bool(settled or out["unexplained"])
+
+
 def motion_of(rec) -> dict:
     """The moving part of a recording (campaign.Recording or the offline reader's) for :func:`run`."""
     return {"joint_stamps_ns": rec.joint_stamps_ns, "joint_positions": rec.joint_positions, "tracker": rec.tracker,
@@ -578,7 +598,7 @@ def _timing(motion, limits, findings, by_id, say):
         f = {"significance_sigma": sigma_from_chi2(d, 1), "delta_bic": float(d - ln_n), "cv_gain": float(gain),
              "degenerate_with": [], "correlated_nominal": []}
         e = finding_entry(by_id[t.id], f, [lag["lag_s"]], [u], abs(lag["lag_s"]) * 1e3, u * 1e3, "ms", set())
-        e.update(block="tracker readings while the stage moves",
+        e.update(block=MOVING_BLOCK,
                  held_out_rms_before_um=lag["held_out_rms_before_m"] * 1e6,
                  held_out_rms_after_um=lag["held_out_rms_after_m"] * 1e6)
         findings.append(e)

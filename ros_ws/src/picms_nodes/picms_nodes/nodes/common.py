@@ -12,6 +12,7 @@ COMMAND_TOPIC = "picms/stage/command"
 SMR_TOPIC = "picms/tracker/smr/{}"
 POSE_TOPIC = "picms/tracker/probe_pose"
 CALIBRATION_TOPIC = "picms/calibration"
+DISCREPANCY_TOPIC = "picms/discrepancy"
 SERVICE = "picms/run_calibration"
 
 # every simulator node builds the same cell from these (same seed -> same truth in each process)

@@ -7,6 +7,15 @@ tracker readings arrive, then calibrates with the same core as the offline tool
 (core.pipeline). Frames are detected as they arrive (bad frames are logged and skipped); only
 those inside settled periods are used. The result is published latched on /picms/calibration
 (metro_msgs/PicmsCalibration) and, on success only, written atomically to output_file.
+
+With judge:=true (default) each calibration then goes through the discrepancy engine
+(core/picms_discrepancy.judge, with the recorded streams, so a tracker clock lag shows on the moves) and
+its verdict is published latched on /picms/discrepancy (metro_msgs/DiscrepancyReport; SUCCESS adequate,
+POOR_FIT inadequate, INSUFFICIENT_DATA when the session is too small for a verdict: the Appendix-A
+pattern's 7 stations are; pattern:=grid drives the engine's 33-station grid instead). When the engine
+finds the settled stations' model inadequate the calibration is published POOR_FIT (so a valid earlier
+calibration stays on the topic, plant_hooks); a finding on the moves only (a clock lag) is added to the
+status message and leaves the code alone.
 """
 from __future__ import annotations
 
@@ -18,7 +27,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallb
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from geometry_msgs.msg import PointStamped
-from metro_msgs.msg import PicmsCalibration
+from metro_msgs.msg import DiscrepancyReport, PicmsCalibration
 from metro_msgs.srv import RunPicmsCalibration
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from trajectory_msgs.msg import JointTrajectory
@@ -29,12 +38,14 @@ from ct_calib_nodes.nodes.runner import QOS_LATCHED, declare_parameters
 
 from ..core.calibrate import CalibrationError, settled_windows
 from ..core.campaign import Recording, appendix_a_pattern
+from ..core.picms_discrepancy import grid_pattern, judge, motion_of
 from ..core.detect import DetectionError, detect_disc
 from ..core.pipeline import calibrate_detections
 from ..io.calibration_msg import calibration_msg, failure_msg
 from ..io.convert import MessageError, image_array, intrinsics_from_camera_info, joint_positions, point, stage_command, stamp_ns
 from ..io.files import read_cell, write_calibration
-from .common import CALIBRATION_TOPIC, COMMAND_TOPIC, IMAGE_TOPIC, INFO_TOPIC, JOINTS_TOPIC, SERVICE, SMR_TOPIC
+from .common import (CALIBRATION_TOPIC, COMMAND_TOPIC, DISCREPANCY_TOPIC, IMAGE_TOPIC, INFO_TOPIC, JOINTS_TOPIC, SERVICE,
+                     SMR_TOPIC)
 
 PARAMS = {
     "cell_file": ("", "picms_cell.yaml; empty = the package's config/picms_cell.yaml [path]"),
@@ -51,6 +62,9 @@ PARAMS = {
     "info_timeout_s": (20.0, "wait this long for joint_states and every CameraInfo before giving up [s]"),
     "command_subscribers": (1, "move the stage only once this many nodes subscribe to its command topic "
                                "(the stage; with a recorder that must see every command: 2) [count]"),
+    "pattern": ("appendix_a", "stations: appendix_a (the paper's 7) or grid (33: enough for a discrepancy "
+                              "verdict; step_xy_m / step_z_m are its half-widths) [-]"),
+    "judge": (True, "run the discrepancy engine on each calibration and publish picms/discrepancy [-]"),
     "auto_start": (False, "run the calibration once at start-up [-]"),
     "exit_when_done": (False, "end the process after an auto_start run [-]"),
     **plant.HISTORY_PARAMS,
@@ -102,6 +116,9 @@ class PicmsCalibrationNode(Node):
                                      img_qos, callback_group=images)
         self.cmd = self.create_publisher(JointTrajectory, COMMAND_TOPIC, 10)
         self.pub = self.create_publisher(PicmsCalibration, CALIBRATION_TOPIC, QOS_LATCHED)
+        if p["pattern"] not in ("appendix_a", "grid"):
+            raise ValueError(f"pattern must be appendix_a or grid, got {p['pattern']!r}")
+        self.disc_pub = self.create_publisher(DiscrepancyReport, DISCREPANCY_TOPIC, QOS_LATCHED)
         self.create_service(RunPicmsCalibration, SERVICE, self.on_service, callback_group=self.svc_group)
         from .plant_hooks import PicmsPlant  # history (latest valid re-published now) and diagnostics
         self.plant = PicmsPlant(self, p["history_db"])
@@ -216,7 +233,10 @@ class PicmsCalibrationNode(Node):
             if missing:
                 raise CalibrationError(f"CameraInfo missing for {missing}: intrinsic calibration K, D required")
             ref = np.array(self.p["reference"], float)
-            for k, dq in enumerate(appendix_a_pattern(float(self.p["step_xy_m"]), float(self.p["step_z_m"]))):
+            sxy, sz = float(self.p["step_xy_m"]), float(self.p["step_z_m"])
+            pattern = appendix_a_pattern(sxy, sz) if self.p["pattern"] == "appendix_a" else \
+                grid_pattern(half_xy_m=sxy, half_z_m=sz)
+            for k, dq in enumerate(pattern):
                 target = ref + dq
                 t_cmd = self.get_clock().now().nanoseconds
                 self._command(target)
@@ -236,6 +256,16 @@ class PicmsCalibrationNode(Node):
             if write_file and self.p["output_file"]:
                 path = str(write_calibration(res, self.p["output_file"]))
             msg = calibration_msg(res, self.get_clock().now().to_msg(), path)
+            if self.p["judge"]:
+                try:
+                    self._judge(res, rec, msg)
+                except Exception as exc:  # noqa: BLE001 - the engine's failure must not cost the calibration
+                    from ct_calib_nodes.io.discrepancy_msg import FAILED, failed_msg  # noqa: PLC0415
+                    self.get_logger().error(f"discrepancy engine failed: {exc!r} (calibration kept)")
+                    rep = failed_msg(msg.header.stamp, FAILED, f"engine error: {exc!r}",
+                                     calibration_topic=self.pub.topic_name)
+                    rep.header.frame_id = "tracker"
+                    self.disc_pub.publish(rep)
             self.plant.publish(msg)
             self.plant.store(res, msg, None, self.cell_file, rec.joint_stamps_ns)
             self.get_logger().info(f"{res.message}; X* pixels " +
@@ -250,6 +280,23 @@ class PicmsCalibrationNode(Node):
             return False, str(exc), msg
         finally:
             self.busy.release()
+
+    def _judge(self, res, rec, msg):
+        """Discrepancy verdict on this calibration: publish it; mark the calibration's status (see module doc)."""
+        from ct_calib_nodes.io.discrepancy_msg import INSUFFICIENT_DATA, POOR_FIT, discrepancy_msg, failed_msg  # noqa: PLC0415
+        self.get_logger().info("discrepancy engine: judging the calibration ...")
+        out, state, text, settled = judge(res, rec.camera_info, motion_of(rec))
+        if out is None:
+            rep = failed_msg(msg.header.stamp, INSUFFICIENT_DATA, text, calibration_topic=self.pub.topic_name)
+        else:
+            rep = discrepancy_msg(out, msg.header.stamp, calibration_topic=self.pub.topic_name)
+        rep.header.frame_id = "tracker"
+        self.disc_pub.publish(rep)
+        self.get_logger().info(f"discrepancy ({state}): {text}")
+        if state == "inadequate":
+            msg.status.message += f"; discrepancy engine: {text}"
+            if settled:
+                msg.status.code = POOR_FIT
 
     def on_service(self, req, resp):
         ok, text, msg = self.run(bool(req.write_file))

@@ -20,7 +20,8 @@ import time
 
 import numpy as np
 
-TOPICS = ["/picms/stage/joint_states", "/picms/stage/command", "/picms/tracker/probe_pose", "/picms/calibration"] + \
+TOPICS = ["/picms/stage/joint_states", "/picms/stage/command", "/picms/tracker/probe_pose", "/picms/calibration",
+          "/picms/discrepancy"] + \
     [f"/picms/camera_{k}/{t}" for k in (1, 2, 3) for t in ("image_raw", "camera_info")] + \
     [f"/picms/tracker/smr/{n}" for n in ("smr_1", "smr_2", "smr_3", "smr_4", "smr_5", "smr_star")]
 
