@@ -41,6 +41,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=8)
     ap.add_argument("--dwell", type=float, default=2.0)
     ap.add_argument("--timeout", type=float, default=300.0)
+    ap.add_argument("--pattern", choices=("appendix_a", "grid"), default="appendix_a",
+                    help="calibration stations; grid (33) is enough for a discrepancy verdict")
+    ap.add_argument("--tracker-lag-ms", type=float, default=0.0, help="hidden: the tracker's stamps run late [ms]")
     a = ap.parse_args(argv)
     stamp = time.strftime("%Y%m%d_%H%M%S")
     out = pathlib.Path(a.out) / stamp
@@ -54,7 +57,8 @@ def main(argv=None) -> int:
                      "-p", "topics:=[" + ",".join(TOPICS) + "]"],
         "stage": [_exe("picms_nodes", "picms_stage_sim"), "--ros-args"],
         "cameras": [_exe("picms_nodes", "picms_camera_sim"), "--ros-args", *seed],
-        "tracker": [_exe("picms_nodes", "picms_tracker_sim"), "--ros-args", *seed],
+        "tracker": [_exe("picms_nodes", "picms_tracker_sim"), "--ros-args", *seed,
+                    "-p", f"tracker_lag_ms:={a.tracker_lag_ms}"],
     }
     procs = {}
     logs = {}
@@ -66,7 +70,8 @@ def main(argv=None) -> int:
         logs["calibration"] = open(out / "calibration.log", "wb")
         cal = subprocess.Popen([_exe("picms_nodes", "picms_calibration"), "--ros-args", "-p", "auto_start:=true",
                                 "-p", "exit_when_done:=true", "-p", "command_subscribers:=2", "-p", f"output_file:={calib}",
-                                "-p", f"dwell_s:={a.dwell}"], stdout=logs["calibration"], stderr=subprocess.STDOUT,
+                                "-p", f"dwell_s:={a.dwell}", "-p", f"pattern:={a.pattern}"],
+                               stdout=logs["calibration"], stderr=subprocess.STDOUT,
                                start_new_session=True)
         try:
             rc = cal.wait(a.timeout)

@@ -23,7 +23,7 @@ from ct_calib_nodes.nodes.runner import QOS_RELIABLE_STREAM, declare_parameters,
 
 from ..core.cell import CONSTELLATION
 from ..core.instruments import probe_pose_reading, smr_position_stage, tracker_reading
-from ..io.convert import MessageError, joint_positions
+from ..io.convert import MessageError, joint_positions, stamp_ns
 from .common import CELL_PARAMS, JOINTS_TOPIC, POSE_TOPIC, SMR_TOPIC, truth_from_params
 
 PARAMS = {
@@ -59,7 +59,7 @@ class PicmsTrackerSim(Node):
         self.rng = np.random.default_rng(int(p["noise_seed"]))
         self.pubs = {n: self.create_publisher(PointStamped, SMR_TOPIC.format(n), QOS_RELIABLE_STREAM) for n in self.names}
         self.pose_pub = self.create_publisher(PoseStamped, POSE_TOPIC, QOS_RELIABLE_STREAM)
-        self.q = None
+        self.q, self.t_q, self.v = None, None, np.zeros(3)   # latest joint_states, its stamp, velocity since the last
         self.k = 0
         from ct_calib_nodes.nodes.bad_input import BadInputCounter
         self.bad_input = BadInputCounter(self.get_logger())    # counted by kind, logged rate-limited
@@ -71,7 +71,11 @@ class PicmsTrackerSim(Node):
 
     def on_joints(self, msg):
         try:
-            self.q = joint_positions(msg)
+            q = joint_positions(msg)
+            t = stamp_ns(msg.header.stamp)
+            if self.q is not None and self.t_q is not None and t > self.t_q:
+                self.v = (q - self.q) / ((t - self.t_q) * 1e-9)
+            self.q, self.t_q = q, t
         except MessageError as exc:
             self.bad_input.report(JOINTS_TOPIC, f"ignored joint_states: {exc}")
 
@@ -80,17 +84,20 @@ class PicmsTrackerSim(Node):
             return
         name = self.names[self.k % len(self.names)]
         self.k += 1
-        p = tracker_reading(self.truth, smr_position_stage(self.truth, name, self.q), self.rng,
-                            probe=name == "smr_star")
+        # the stage where it is now, not where its last joint_states (up to a period and the DDS latency
+        # old) put it: else a moving stage shows a clock lag of ~10 ms that no instrument has
+        now = self.get_clock().now()
+        q = self.q + self.v * min(max((now.nanoseconds - self.t_q) * 1e-9, 0.0), 0.1)
+        p = tracker_reading(self.truth, smr_position_stage(self.truth, name, q), self.rng, probe=name == "smr_star")
         m = PointStamped()
-        m.header.stamp = (self.get_clock().now() + Duration(nanoseconds=int(round(self.truth.physics.tracker_lag_s * 1e9)))).to_msg()
+        m.header.stamp = (now + Duration(nanoseconds=int(round(self.truth.physics.tracker_lag_s * 1e9)))).to_msg()
         m.header.frame_id = "tracker"
         m.point.x, m.point.y, m.point.z = (float(v) for v in p)
         self.pubs[name].publish(m)
         self.diag.sent.tick()
         if self.k % int(self.p["pose_every"]) == 0:
             from scipy.spatial.transform import Rotation
-            R, pp = probe_pose_reading(self.truth, self.q, self.rng)
+            R, pp = probe_pose_reading(self.truth, q, self.rng)
             ps = PoseStamped()
             ps.header = m.header
             ps.pose.position.x, ps.pose.position.y, ps.pose.position.z = (float(v) for v in pp)
