@@ -321,16 +321,15 @@ def test_realistic_tracker_errors_reported_and_the_lag_measured_on_the_moves(gri
     u = np.sqrt(np.diag(res.cov_p_tracker))
     assert np.all(np.abs(res.p_tracker - x_read) < 4 * u)
     assert np.linalg.norm(res.p_tracker - truth.to_tracker(truth.smr_star_stage)[0]) > 5e-6
-    # with the moves: the lag named and measured (the other three stay below their limits)
-    out = pd.run(res, rec2.camera_info, motion=pd.motion_of(rec2))
+    # with the moves (the live node's judgement): the lag named and measured, the other three below their
+    # limits; inadequate, but the settled stations (the calibration's data) are not in doubt
+    out, state, text, settled = pd.judge(res, rec2.camera_info, pd.motion_of(rec2))
+    assert state == "inadequate" and not settled and text == out["verdict"]
     assert not out["adequate"] and [f["term"] for f in out["findings"]] == ["tracker_timing_lag"], out["verdict"]
     p = out["findings"][0]["parameters"][0]
     assert abs(p["value"] - (-0.030)) < 4 * p["u"] and p["u"] < 1e-3, p
     assert out["verdict"].startswith("The nominal model leaves out a clock offset") and "early" in out["verdict"]
     assert out["findings"][0]["held_out_rms_after_um"] < 0.5 * out["findings"][0]["held_out_rms_before_um"]
-    # the live node's judgement: inadequate, but the settled stations (the calibration's data) are not in doubt
-    _out, state, text, settled = pd.judge(res, rec2.camera_info, pd.motion_of(rec2))
-    assert state == "inadequate" and not settled and text == out["verdict"]
     # and on the clean session the moves show no lag: a limit below 2 ms instead
     res_clean, info, _ = grid_clean
     clean = pd.run(res_clean, info, motion=pd.motion_of(rec))
