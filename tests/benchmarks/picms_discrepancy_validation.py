@@ -65,7 +65,7 @@ import numpy as np
 
 from picms_nodes.core import campaign, cell, instruments, pipeline
 from picms_nodes.core import picms_discrepancy as pd
-from picms_nodes.core.calibrate import assign, calibrate, settled_windows
+from picms_nodes.core.calibrate import assign, calibrate, in_window, settled_windows
 from picms_nodes.core.camera import Intrinsics
 from picms_nodes.core.instruments import StageSim
 from picms_nodes.core.stage_errors import StageErrorSpec
@@ -188,7 +188,7 @@ def tracker_job(base, job):
         raise RuntimeError(f"seed {seed}: the re-simulated session differs from the clean recording")
     if job in SETTLED_ONLY:
         win = settled_windows(rec.joint_stamps_ns, rec.joint_positions)
-        rec.tracker = [r for r in rec.tracker if any(w.start_ns <= r[0] <= w.end_ns for w in win)]
+        rec.tracker = [r for r in rec.tracker if in_window(r[0], win) >= 0]
     return {**base, "job": job, "acq": "grid", "tracker": rec.tracker,
             "variants": {"true": base["variants"]["true"]}, "truth": truth_summary(truth), "render_cpu_s": 0.0}
 

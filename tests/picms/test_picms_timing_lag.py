@@ -6,7 +6,7 @@ import numpy as np
 from picms_nodes.core import campaign, cell
 from picms_nodes.core import picms_discrepancy as pd
 from picms_nodes.core import timing_lag
-from picms_nodes.core.calibrate import settled_windows
+from picms_nodes.core.calibrate import in_window, settled_windows
 
 
 def _session(seed, lag_s, stage_errors, **rates):
@@ -43,7 +43,7 @@ def test_lag_measured_within_its_uncertainty_over_seeds():
 def test_tracker_read_only_when_settled_cannot_show_a_lag():
     rec = _session(711, -0.030, stage_errors=False)
     win = settled_windows(rec.joint_stamps_ns, rec.joint_positions)
-    rec.tracker = [r for r in rec.tracker if any(w.start_ns <= r[0] <= w.end_ns for w in win)]
+    rec.tracker = [r for r in rec.tracker if in_window(r[0], win) >= 0]
     e = _estimate(rec)
     assert not e["seen"] and "while moving" in e["reason"]
     # no stage readings at all

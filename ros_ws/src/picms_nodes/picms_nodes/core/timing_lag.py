@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .calibrate import settled_windows
+from .calibrate import assign, settled_windows
 
 MIN_MOVE_M = 1e-5           # moves shorter than this carry no timing information
 DERIV_H_S = 0.004           # finite-difference step of lambda's time derivative
@@ -52,14 +52,14 @@ def _moves(stamps_ns, positions, tracker, names):
             arr[n] = (np.asarray(tt)[k], np.asarray(xx)[k])
     ws = [((w.start_ns - t0) * 1e-9, (w.end_ns - t0) * 1e-9, w.q) for w in win]
     means, scatter = [], []
-    for a, b, _q in ws:
+    for station in assign(win, [], [r for r in tracker if r[1] in arr]):      # the calibration's grouping
         m = {}
-        for n, (tt, xx) in arr.items():
-            sel = (tt >= a) & (tt <= b)
-            k = int(sel.sum())
+        for n, xs in station.readings.items():
+            k = len(xs)
             if k >= 2:
-                m[n] = xx[sel].mean(0)
-                scatter.append((xx[sel] - m[n]) * np.sqrt(k / (k - 1)))    # about a mean of k: unbiased
+                xx = np.array(xs)
+                m[n] = xx.mean(0)
+                scatter.append((xx - m[n]) * np.sqrt(k / (k - 1)))    # about a mean of k: unbiased
         means.append(m)
     Ms = {}
     for n in arr:
