@@ -25,7 +25,7 @@ import numpy as np
 from .calibrate import assign, settled_windows
 
 MIN_MOVE_M = 1e-5           # moves shorter than this carry no timing information
-DERIV_H_S = 0.004           # finite-difference step of lambda's time derivative
+DERIV_H_S = 0.004           # finite-difference step of the model's time derivative (d r / d L)
 
 
 def _interp_q(t_s, ts, qs):
@@ -33,8 +33,8 @@ def _interp_q(t_s, ts, qs):
 
 
 def _moves(stamps_ns, positions, tracker, names):
-    """Per move: (q_k, q_k+1, {name: (X_k, X_k+1, t_i (n,), x_i (n, 3))}), the settled scatter (list of
-    deviations from their window means), and the time origin."""
+    """Per move: (q_k, q_k+1, {name: (X_k, X_k+1, M (3, 3), t_i (n,), x_i (n, 3))}); the settled scatter
+    (list of deviations from their window means); the joint_states' times [s from the first] and positions."""
     o = np.argsort(np.asarray(stamps_ns, np.int64), kind="stable")
     st = np.asarray(stamps_ns, np.int64)[o]
     qs = np.asarray(positions, float)[o]
