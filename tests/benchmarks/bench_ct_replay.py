@@ -59,12 +59,19 @@ from ct_calib_nodes.core.scenario import default_campaign  # noqa: E402
 from ct_calib_nodes.io import ct_files  # noqa: E402
 
 STEP_M = 0.05
+TRAVEL_M = 0.36       # the longest magnification travel a recording spans (the paper's ~360 mm)
+
+
+def step_m(n_pos: int) -> float:
+    """Spacing of the stage positions: 50 mm, closer when n_pos would exceed TRAVEL_M (19 positions at
+    50 mm would put the object behind the detector: SRD 0.364 + 0.9 m > SDD 1.05 m)."""
+    return STEP_M if n_pos < 2 else min(STEP_M, TRAVEL_M / (n_pos - 1))
 
 
 def _render(args):
     k, j, n_proj, n_pos, seed = args
     inst = ct_files.load_instrument(ct_files.default_instrument_path())
-    camp = default_campaign(n_pos, STEP_M, 0.364, inst.sdd_reported_m)
+    camp = default_campaign(n_pos, step_m(n_pos), 0.364, inst.sdd_reported_m)
     alpha = 2 * np.pi * j / n_proj
     fr = render_projection(camp.static_w, camp.motions[k], alpha, helix49(), inst.detector, RenderSettings(),
                            np.random.default_rng([seed, k, j]))
@@ -80,7 +87,7 @@ def make_recording(path: pathlib.Path, n_pos: int, n_proj: int, seed: int = 7, p
     from ct_calib_nodes.io.mcap_io import Rosbag2McapWriter
 
     stamp_file = path.with_suffix(".json")
-    want = {"positions": n_pos, "projections": n_proj, "seed": seed, "step_m": STEP_M}
+    want = {"positions": n_pos, "projections": n_proj, "seed": seed, "step_m": step_m(n_pos)}
     if path.is_file() and stamp_file.is_file() and json.loads(stamp_file.read_text()) == want:
         return path
     path.parent.mkdir(parents=True, exist_ok=True)
