@@ -1625,19 +1625,11 @@ def _lm_lines(p0, x, y, l, iters=25, give_up=np.inf):
     return p
 
 
-def _fit_corner(trans, cand, c, theta1, st):
-    """Log-background of candidate ``c`` as a plane plus two straight blurred ramps (steps of
-    any width, :func:`_corner_design`) and their product (a plate or holder corner: the region
-    inside both), fitted to the annulus between ``radius + exclusion_px`` and ``2 radius +
-    exclusion_px`` (other shadows masked) by variable projection: the eight line parameters by
-    :func:`_lm_lines` on at most 200 evenly spread samples, the six amplitudes linearly for
-    each. The lines are started from the strongest gradient across ``theta1`` (the
-    one-direction model's structure) and the structure tensor of the gradients away from it.
-
-    The model's own check: the rms misfit on all annulus samples against the pixel noise there
-    (robust, from differences of neighbouring annulus pixels), returned in ``ratio``. Also
-    returned: the covariance of all 14 parameters (s^2 (J^T J)^-1) and the mean residual of the
-    inner ring per sector, which :func:`_corner_pass` propagates to the centre."""
+def _annulus(trans, cand, c, st):
+    """The background annulus of candidate ``c`` shared by the corner model and the model check:
+    radius + ``exclusion_px`` to that + max(radius, 8) px, other shadows masked. Returns
+    ((y0, y1, x0, x1) window in the image, window of T (float64), X, Y (pixel offsets from the
+    candidate's centre), use (bool, the annulus samples), rin, R (the window's half size))."""
     rows, cols = trans.shape
     cx, cy = cand.centre[c]
     r = float(cand.radius[c])
@@ -1651,6 +1643,23 @@ def _fit_corner(trans, cand, c, theta1, st):
     X, Y = xx - cx, yy - cy
     rho = np.hypot(X, Y)
     use = (rho > rin) & (rho < rout) & (cand.shadows[y0:y1, x0:x1] == 0) & (win > 1e-6)
+    return (y0, y1, x0, x1), win, X, Y, use, rin, R
+
+
+def _fit_corner(trans, cand, c, theta1, st):
+    """Log-background of candidate ``c`` as a plane plus two straight blurred ramps (steps of
+    any width, :func:`_corner_design`) and their product (a plate or holder corner: the region
+    inside both), fitted to the annulus between ``radius + exclusion_px`` and ``2 radius +
+    exclusion_px`` (other shadows masked) by variable projection: the eight line parameters by
+    :func:`_lm_lines` on at most 200 evenly spread samples, the six amplitudes linearly for
+    each. The lines are started from the strongest gradient across ``theta1`` (the
+    one-direction model's structure) and the structure tensor of the gradients away from it.
+
+    The model's own check: the rms misfit on all annulus samples against the pixel noise there
+    (robust, from differences of neighbouring annulus pixels), returned in ``ratio``. Also
+    returned: the covariance of all 14 parameters (s^2 (J^T J)^-1) and the mean residual of the
+    inner ring per sector, which :func:`_corner_pass` propagates to the centre."""
+    (y0, y1, x0, x1), win, X, Y, use, rin, _ = _annulus(trans, cand, c, st)
     n = int(use.sum())
     if n < 100:
         return _CornerModel(False, f"only {n} background samples round the shadow")
@@ -1882,29 +1891,18 @@ def _model_check(trans, cand, model, meas, accepted, st):
     todo = [c for c in accepted if c not in meas.corner and misfit[c] > st.model_check_misfit]
     if not todo:
         return
-    rows, cols = trans.shape
     deg = int(st.model_check_degree)
     wins = []
     for c in todo:
-        cx, cy = cand.centre[c]
-        r = float(cand.radius[c])
-        rin = r + st.exclusion_px
-        rout = rin + max(r, 8.0)
-        R = int(np.ceil(rout)) + 1
-        y0, x0 = max(int(round(cy)) - R, 0), max(int(round(cx)) - R, 0)
-        y1, x1 = min(int(round(cy)) + R + 1, rows), min(int(round(cx)) + R + 1, cols)
-        win = trans[y0:y1, x0:x1].astype(np.float64)
-        yy, xx = np.mgrid[y0:y1, x0:x1]
-        X, Y = (xx - cx) / R, (yy - cy) / R
-        rho = np.hypot(xx - cx, yy - cy)
-        use = (rho > rin) & (rho < rout) & (cand.shadows[y0:y1, x0:x1] == 0) & (win > 1e-6)
+        box, win, X, Y, use, _, R = _annulus(trans, cand, c, st)
+        X, Y = X / R, Y / R
         terms = [X ** i * Y ** j for i in range(deg + 1) for j in range(deg + 1 - i)]
         if np.count_nonzero(use) < 4 * len(terms):
-            meas.extra_cov[c] = meas.extra_cov[c] + np.eye(2) * (0.5 * r) ** 2
+            meas.extra_cov[c] = meas.extra_cov[c] + np.eye(2) * (0.5 * float(cand.radius[c])) ** 2
             continue
         L = np.log(np.where(win > 1e-6, win, 1e-6))
         coef, *_ = np.linalg.lstsq(np.stack([t[use] for t in terms], axis=1), L[use], rcond=None)
-        wins.append((c, (y0, y1, x0, x1), np.exp(sum(cf * t for cf, t in zip(coef, terms)))))
+        wins.append((c, box, np.exp(sum(cf * t for cf, t in zip(coef, terms)))))
     while wins:                        # batches of windows that do not overlap
         batch, rest = [], []
         for w in wins:
