@@ -166,12 +166,13 @@ def main():
             if why == "overlap" and det.rejected.detail[int(np.argmin(dd))].startswith("gap"):
                 why = "overlap_proximity"      # threshold outlines closer than 4 px (blur), not merged
             miss[why] = miss.get(why, 0) + 1
-        if len(det) and det.on_corner.any():    # the shadows measured with the corner model
-            f, ne, fa, e, z = score(det.centre_px[det.on_corner], det.centre_std_px[det.on_corner], tr)
-            q = r["ours"].setdefault("corner", {"n": 0, "e": [], "z": []})
-            q["n"] += int(det.on_corner.sum())
-            q["e"].append(e)
-            q["z"].append(z)
+        for name, sel in (("corner", det.on_corner), ("two_models", det.two_models)):
+            if len(det) and sel.any():          # the shadows measured by the corner model / kept on two models
+                f, ne, fa, e, z = score(det.centre_px[sel], det.centre_std_px[sel], tr)
+                q = r["ours"].setdefault(name, {"n": 0, "e": [], "z": []})
+                q["n"] += int(sel.sum())
+                q["e"].append(e)
+                q["z"].append(z)
         runs = [("ours", (det.centre_px, det.centre_std_px)), ("textbook", (tb, None))]
         if args.before:
             t = time.perf_counter()
@@ -219,10 +220,11 @@ def main():
             if "missed_by_reason" in q:
                 row["missed_by_reason"] = q["missed_by_reason"]
             if m == "ours":
-                k = q.get("corner", {"n": 0, "e": [np.zeros((0, 2))], "z": [np.zeros((0, 2))]})
-                ce, cz = np.vstack(k["e"]), np.vstack(k["z"])
-                row["corner_model"] = {"n": k["n"], "matched": len(ce), "err_px": ce.round(4).tolist(),
-                                       "z": cz.round(2).tolist()}
+                for name, out_key in (("corner", "corner_model"), ("two_models", "two_models")):
+                    k = q.get(name, {"n": 0, "e": [np.zeros((0, 2))], "z": [np.zeros((0, 2))]})
+                    ce, cz = np.vstack(k["e"]), np.vstack(k["z"])
+                    row[out_key] = {"n": k["n"], "matched": len(ce), "err_px": ce.round(4).tolist(),
+                                    "z": cz.round(2).tolist()}
                 if "new" in q:
                     ne_, nz_ = np.vstack(q["new"]["e"]), np.vstack(q["new"]["z"])
                     row["new_vs_before"] = {"n": q["new"]["n"], "false": q["new"]["false"],
@@ -233,7 +235,7 @@ def main():
                   f"{str(row['robust_z']):>11s} {row['ms_per_frame']:6.1f}")
     for key, per in res.items():
         print(f"{key}: ours missed {per['ours'].get('missed_by_reason', {})}; corner model: "
-              f"{summary[key + '_ours']['corner_model']}")
+              f"{summary[key + '_ours']['corner_model']}; two models: {summary[key + '_ours']['two_models']}")
     summary["cpu_count"] = os.cpu_count()
     summary["args"] = vars(args)
     print(json.dumps(summary))

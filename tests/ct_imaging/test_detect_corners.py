@@ -33,8 +33,9 @@ def test_plate_corner_sphere_found_with_corner_model(plate_frames, k):
     d = np.linalg.norm(det.centre_px[c][:, None] - tr.centre_px[None], axis=2).min(axis=1)
     # within 4 reported sd (rss of both axes) and 0.03 px of the truth
     assert np.all(d < np.minimum(0.03, 4 * np.linalg.norm(det.centre_std_px[c], axis=1) + 0.01))
-    # without the corner pass the same shadows are refused as background_structure
+    # without the corner pass (and the two-model pass, the last resort after it) the same
+    # shadows are refused as background_structure
     off = detect.detect_spheres(img, encoding=encoding, diameter_px_range=dr,
-                                settings=detect.DetectionSettings(max_corner_misfit=None))
+                                settings=detect.DetectionSettings(max_corner_misfit=None, two_model_pass=False))
     assert len(off) == len(det) - int(c.sum())
     assert off.rejected.count("background_structure") >= int(c.sum())
