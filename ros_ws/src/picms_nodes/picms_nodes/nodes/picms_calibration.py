@@ -6,7 +6,9 @@ commands the stage (only through /picms/stage/command) to the reference and then
 tracker readings arrive, then calibrates with the same core as the offline tool
 (core.pipeline). Frames are detected as they arrive (bad frames are logged and skipped); only
 those inside settled periods are used. The result is published latched on /picms/calibration
-(metro_msgs/PicmsCalibration) and, on success only, written atomically to output_file.
+(metro_msgs/PicmsCalibration) and written atomically to output_file only when it is neither failed nor
+POOR_FIT (by its own fit, camera chi2/dof >= 4, or by the discrepancy engine's verdict below): a poor
+calibration never replaces the good one plant software reads there.
 
 With judge:=true (default) each calibration then goes through the discrepancy engine
 (core/picms_discrepancy.judge, with the recorded streams, so a tracker clock lag shows on the moves) and
@@ -27,7 +29,7 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallb
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from geometry_msgs.msg import PointStamped
-from metro_msgs.msg import DiscrepancyReport, PicmsCalibration
+from metro_msgs.msg import DiscrepancyReport, PicmsCalibration, SolveStatus
 from metro_msgs.srv import RunPicmsCalibration
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from trajectory_msgs.msg import JointTrajectory
@@ -49,7 +51,7 @@ from .common import (CALIBRATION_TOPIC, COMMAND_TOPIC, DISCREPANCY_TOPIC, IMAGE_
 
 PARAMS = {
     "cell_file": ("", "picms_cell.yaml; empty = the package's config/picms_cell.yaml [path]"),
-    "output_file": ("picms_calibration.yaml", "where a successful calibration is written [path]"),
+    "output_file": ("picms_calibration.yaml", "where a calibration is written unless failed or POOR_FIT [path]"),
     "cameras": (["camera_1", "camera_2", "camera_3"], "cameras of the Pixel Probe [-]"),
     "step_xy_m": (0.006, "stage excursion along +-x and +-y from the reference [m]"),
     "step_z_m": (0.004, "stage excursion along +-z [m]"),
@@ -252,10 +254,7 @@ class PicmsCalibrationNode(Node):
                                 joint_positions=np.array(self.js_q).reshape(-1, 3), tracker=list(self.tracker))
                 dets = list(self.dets)
             res = calibrate_detections(rec, dets)
-            path = ""
-            if write_file and self.p["output_file"]:
-                path = str(write_calibration(res, self.p["output_file"]))
-            msg = calibration_msg(res, self.get_clock().now().to_msg(), path)
+            msg = calibration_msg(res, self.get_clock().now().to_msg(), "")
             if self.p["judge"]:
                 try:
                     self._judge(res, rec, msg)
@@ -266,6 +265,16 @@ class PicmsCalibrationNode(Node):
                                      calibration_topic=self.pub.topic_name)
                     rep.header.frame_id = "tracker"
                     self.disc_pub.publish(rep)
+            # the file plant software reads is written only after the verdict: a calibration whose
+            # model the engine found inadequate (POOR_FIT) must not replace a good one there
+            path = ""
+            if write_file and self.p["output_file"]:
+                if msg.status.code == SolveStatus.POOR_FIT:
+                    self.get_logger().warning(f"calibration not written: POOR_FIT; {self.p['output_file']} "
+                                              "left untouched")
+                else:
+                    path = str(write_calibration(res, self.p["output_file"]))
+                    msg.file_path = path
             self.plant.publish(msg)
             self.plant.store(res, msg, None, self.cell_file, rec.joint_stamps_ns)
             self.get_logger().info(f"{res.message}; X* pixels " +
