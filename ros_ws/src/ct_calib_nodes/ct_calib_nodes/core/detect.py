@@ -1284,6 +1284,23 @@ class _LocalBackground:
     frame_field: np.ndarray | None = None  # (8,) _frame_field: the frame-wide quadratic in ln B, or None
 
 
+def _subset(cand, k):
+    """Candidates ``k`` (index array) of ``cand``, with its shadow mask and noise (one-off measurements)."""
+    return _Candidates(index=cand.index[k], centre=cand.centre[k], radius=cand.radius[k], area=cand.area[k],
+                       shadows=cand.shadows, noise=cand.noise)
+
+
+def _flat_background(centres, umin=-1, structure=0.0, ray_keep=None):
+    """A background of 1 everywhere for shadows at ``centres`` (C, 2): for windows already divided by
+    another background model (corner, surface, plane, ring-corrected lines)."""
+    c = len(centres)
+    n = 2 * (-umin) + 1
+    return _LocalBackground(origin=np.rint(centres), eu=np.tile([1.0, 0.0], (c, 1)), ev=np.tile([0.0, 1.0], (c, 1)),
+                            umin=umin, a=np.ones((c, n)), b=np.zeros((c, n)), edge_gradient=np.zeros((c, n)),
+                            structure=np.full(c, structure), coherence=np.zeros(c), minor=np.zeros(c),
+                            ray_keep=ray_keep)
+
+
 def _local_backgrounds(trans, bg, cand, st):
     """Background of each shadow from its surroundings, with no assumption about the holder.
 
@@ -1810,8 +1827,7 @@ def _corner_pass(trans, cand, model, meas, deferred, st, drange, rej, last=None)
         sl = (slice(cm.y0, cm.y0 + h), slice(cm.x0, cm.x0 + w))
         saved = trans[sl].copy()
         k = np.array([c])
-        sub = _Candidates(index=cand.index[k], centre=cand.centre[k], radius=cand.radius[k], area=cand.area[k],
-                          shadows=cand.shadows, noise=cand.noise)
+        sub = _subset(cand, k)
 
         def measure(bg):
             if not (np.all(np.isfinite(bg)) and np.min(bg) > 1e-6):
@@ -1951,13 +1967,8 @@ def _surface_shifts(trans, cand, model, meas, todo, st):
         wins = rest
         k = np.array([w[0] for w in batch])
         saved = [trans[w[1][0]:w[1][1], w[1][2]:w[1][3]].copy() for w in batch]
-        sub = _Candidates(index=cand.index[k], centre=cand.centre[k], radius=cand.radius[k], area=cand.area[k],
-                          shadows=cand.shadows, noise=cand.noise)
-        n = 2 * (-model.umin) + 1
-        flat = _LocalBackground(origin=np.rint(cand.centre[k]), eu=np.tile([1.0, 0.0], (k.size, 1)),
-                                ev=np.tile([0.0, 1.0], (k.size, 1)), umin=model.umin, a=np.ones((k.size, n)),
-                                b=np.zeros((k.size, n)), edge_gradient=np.zeros((k.size, n)),
-                                structure=np.ones(k.size), coherence=np.zeros(k.size), minor=np.zeros(k.size))
+        sub = _subset(cand, k)
+        flat = _flat_background(cand.centre[k], umin=model.umin, structure=1.0)
         try:
             for w, sv in zip(batch, saved):
                 trans[w[1][0]:w[1][1], w[1][2]:w[1][3]] = (sv / w[2]).astype(trans.dtype)
@@ -2048,11 +2059,8 @@ def _ring_shift(trans, cand, model, c, st):
     sres = np.where(n_in > 0, np.bincount(sec[inner], res[inner], minlength=12) / np.maximum(n_in, 1), 0.0)
     f = _sector_interp(ang, sres)
     k1 = np.array([c])
-    sub = _Candidates(index=cand.index[k1], centre=cand.centre[k1], radius=cand.radius[k1], area=cand.area[k1],
-                      shadows=cand.shadows, noise=cand.noise)
-    flat = _LocalBackground(origin=np.rint(cand.centre[k1]), eu=np.array([[1.0, 0.0]]), ev=np.array([[0.0, 1.0]]),
-                            umin=-1, a=np.ones((1, 3)), b=np.zeros((1, 3)), edge_gradient=np.zeros((1, 3)),
-                            structure=np.zeros(1), coherence=np.zeros(1), minor=np.zeros(1))
+    sub = _subset(cand, k1)
+    flat = _flat_background(cand.centre[k1])
     saved = trans[y0:y1, x0:x1].copy()
     Bs = np.maximum(B, 1e-6)
     fits = []
@@ -2133,12 +2141,8 @@ def _arc_measure(trans, cand, c, meas, st, drange, depth_ref, rej):
     s2p = float(np.sum(res[sel] ** 2)) / max(int(np.count_nonzero(sel)) - 3, 1)
     cov_p = s2p * np.linalg.pinv(A[sel].T @ A[sel])
     k1 = np.array([c])
-    sub = _Candidates(index=cand.index[k1], centre=cand.centre[k1], radius=cand.radius[k1], area=cand.area[k1],
-                      shadows=cand.shadows, noise=cand.noise)
-    flat = _LocalBackground(origin=np.rint(cand.centre[k1]), eu=np.array([[1.0, 0.0]]), ev=np.array([[0.0, 1.0]]),
-                            umin=-1, a=np.ones((1, 3)), b=np.zeros((1, 3)), edge_gradient=np.zeros((1, 3)),
-                            structure=np.zeros(1), coherence=np.zeros(1), minor=np.zeros(1),
-                            ray_keep=good[None, :])
+    sub = _subset(cand, k1)
+    flat = _flat_background(cand.centre[k1], ray_keep=good[None, :])
 
     def measure(q):
         bg = np.exp(q[0] + q[1] * X + q[2] * Y)
