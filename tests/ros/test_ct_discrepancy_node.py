@@ -85,18 +85,18 @@ def test_discrepancy_node_judges_each_solve_and_marks_the_geometry(start_node, r
     for pair in nodes.values():
         for n in pair:
             assert n.proc.poll() is None, n.log()
-    recs = {}
-    for _ in range(40):                 # the node publishes first, then stores: allow it a moment
+    recs, geo = {}, []
+    for _ in range(40):                 # the solver stores its superseding record after the verdict: a moment
         with History(db) as h:
             recs = {r.cell: r for r in h.list(kind="discrepancy", with_details=True)}
-        if len(recs) == 2:
+            geo = h.list(cell="/drift", kind="ct_geometry", newest_first=True, with_details=True)
+        if len(recs) == 2 and geo and geo[0].status == "poor_fit":
             break
         ros_node.spin_until(lambda: False, timeout=0.25)
     assert recs["/clean"].status == "success" and recs["/drift"].status == "poor_fit"
     assert recs["/drift"].result["findings"][0]["term"] == top.term
     # the geometry's own history record carries the verdict: a superseding poor_fit record, original kept
     with History(db) as h:
-        geo = h.list(cell="/drift", kind="ct_geometry", newest_first=True, with_details=True)
         assert [r.status for r in geo[:2]] == ["poor_fit", "success"], [(r.id, r.status) for r in geo]
         assert geo[0].result["supersedes"]["uid"] == geo[1].uid and h.superseded(geo[1].uid)
         assert h.latest_valid("/drift", "ct_geometry") is None

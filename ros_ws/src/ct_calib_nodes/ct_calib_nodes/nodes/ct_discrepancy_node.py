@@ -267,8 +267,6 @@ class CtDiscrepancyNode(Node):
         from ct_calib_nodes.io.discrepancy_msg import positions_record  # noqa: PLC0415
         from ct_calib_nodes.io.history import STATUS_BY_CODE, Input  # noqa: PLC0415
 
-        self.map_pub.publish(rep)
-        self.last_map_report = rep
         stamp_ns = _stamp_ns(rep.header.stamp)
         stamps = [t for p in self.acc.positions[:len(msg.srd_reported_m)] for t in p.stamps_ns if t <= stamp_ns]
         inputs = [Input(role="topic", path=self.resolve_topic_name("ct/error_map"),
@@ -278,7 +276,11 @@ class CtDiscrepancyNode(Node):
                                data_end_ns=max(stamps) if stamps else None,
                                status=None if sp is not None else STATUS_BY_CODE[rep.status.code],
                                message=rep.status.message)
+        # stored before it is published: a verdict anyone has seen is the one a restart re-publishes
+        # (a node killed between the two re-published the previous verdict)
         self.history.store(rec, rep, MSG_TYPE)
+        self.map_pub.publish(rep)
+        self.last_map_report = rep
 
     def _give_up(self, msg, code, text, error_map: bool = False):
         from ct_calib_nodes.io.discrepancy_msg import failed_msg  # noqa: PLC0415
@@ -298,8 +300,6 @@ class CtDiscrepancyNode(Node):
         from ct_calib_nodes.io.discrepancy_msg import discrepancy_record  # noqa: PLC0415
         from ct_calib_nodes.io.history import STATUS_BY_CODE, Input  # noqa: PLC0415
 
-        self.pub.publish(rep)
-        self.last_report, self.last_t, self.runs = rep, time.monotonic(), self.runs + 1
         inputs = [Input(role="topic", path=self.resolve_topic_name("ct/geometry"),
                         detail={"stamp_ns": _stamp_ns(rep.header.stamp)})]
         start = end = None
@@ -311,7 +311,9 @@ class CtDiscrepancyNode(Node):
                                  inputs=inputs, data_start_ns=start, data_end_ns=end,
                                  status=None if out is not None else STATUS_BY_CODE[rep.status.code],
                                  message=rep.status.message)
-        self.history.store(rec, rep, MSG_TYPE)
+        self.history.store(rec, rep, MSG_TYPE)            # stored first, as in _publish_map
+        self.pub.publish(rep)
+        self.last_report, self.last_t, self.runs = rep, time.monotonic(), self.runs + 1
 
     def diagnose(self):
         r = self.last_report
