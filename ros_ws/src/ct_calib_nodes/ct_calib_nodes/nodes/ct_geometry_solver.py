@@ -182,6 +182,8 @@ class CtGeometrySolver(Node):
             self.get_logger().info(f"static geometry ({why}): {res.message}; {p0.n_frames} frames, "
                                    f"z_R = {res.x[0] * 1e3:.3f} mm, z_D = {res.x[3] * 1e3:.3f} mm")
             return res, res.message
+        # stored before it is published: a restart re-publishes what plant software has seen
+        self._store(res, msg, p0)
         if res.success or self.valid_msg is None:
             self.pub.publish(msg)
             if res.success:
@@ -190,7 +192,6 @@ class CtGeometrySolver(Node):
             self.get_logger().error("the new geometry is not usable: not published; the last valid calibration "
                                     f"(stamp {self.valid_msg.header.stamp.sec} s) stays on ct/geometry")
         self.last_status, self.last_solve_t = msg.static_estimate.status, time.monotonic()
-        self._store(res, msg, p0)
         self.journal.event("solved", frames=p0.n_frames, success=bool(res.success))
         log = self.get_logger().info if res.success else self.get_logger().error
         log(f"static geometry ({why}): {'converged' if res.success else 'NOT USABLE'}: {res.message}; "
@@ -212,12 +213,13 @@ class CtGeometrySolver(Node):
         if self.valid_msg is m:
             self.valid_msg = None
         self.last_status = m.static_estimate.status
-        self.pub.publish(m)
         # the history carries the verdict: a superseding poor_fit record (the original kept), so a
-        # restarted solver re-publishes POOR_FIT, and latest_valid no longer returns this geometry
+        # restarted solver re-publishes POOR_FIT, and latest_valid no longer returns this geometry;
+        # stored before it is published
         if self.last_rec is not None and self.last_rec.data_end_ns == _stamp_ns(m):
             self.history.supersede(self.last_rec, "poor_fit", m.static_estimate.status.message, msg=m,
                                    type_name=MSG_TYPE, extra={"verdict": str(rep.verdict)})
+        self.pub.publish(m)
         self.get_logger().error(f"the geometry of stamp {m.header.stamp.sec} s is marked POOR_FIT: {rep.verdict}")
 
     def _store(self, res, msg, p0):
