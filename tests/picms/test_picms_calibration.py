@@ -107,6 +107,13 @@ def test_bad_inputs_named(station_data):
     nostar = [r for r in rec.tracker if r[1] != "smr_star"]
     with pytest.raises(CalibrationError, match="SMR"):
         calibrate(assign(w, dets, nostar), rec.camera_info, rec.cell)
+    # no tracker readings at the first (reference) station: X* moves to the next station's reading,
+    # and the result says so (a live node whose tracker subscriptions matched late did this silently)
+    late = [r for r in rec.tracker if not (w[0].start_ns <= r[0] <= w[0].end_ns)]
+    moved = calibrate(assign(w, dets, late), rec.camera_info, rec.cell)
+    assert not np.allclose(moved.stage_reading, ok.stage_reading)
+    assert np.allclose(moved.stage_reading, w[1].q)
+    assert "X* is defined at the reading" in moved.message and "X* is defined" not in ok.message
 
 
 def test_stage_that_never_settles():

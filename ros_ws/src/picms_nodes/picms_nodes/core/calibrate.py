@@ -352,6 +352,12 @@ def calibrate(stations: list[Station], camera_info: dict, cell: dict) -> Calibra
         raise CalibrationError(f"no settled station with a reading of the probe SMR {star!r} "
                                f"(readings seen: {have})")
     ref = good[0]
+    if ref is not stations[0]:
+        # X* is where the SMR* sat at the reference station: a first station without the tracker's
+        # readings moves it to this station's reading (self-consistent, but not the X* intended)
+        notes.append(f"the first settled station (reading {np.round(stations[0].window.q * 1e3, 3).tolist()} mm) "
+                     "lacks the probe SMR or >= 3 constellation SMRs: X* is defined at the reading "
+                     f"{np.round(ref.window.q * 1e3, 3).tolist()} mm instead")
     if not all(c in ref.detections for c in cams):
         missing = [c for c in cams if c not in ref.detections]
         raise CalibrationError(f"no usable disc image at the reference station from {missing}")

@@ -205,10 +205,21 @@ class PicmsCalibrationNode(Node):
             w = settled_windows(t[keep], q[keep]) if keep.sum() > 3 else []
             if w and w[-1].end_ns == t[keep].max() and np.all(np.abs(w[-1].q - target) <= res) \
                     and w[-1].end_ns - w[-1].start_ns >= dwell_ns:
+                a, b = w[-1].start_ns, w[-1].end_ns
                 with self.lock:
-                    n = {c: sum(1 for st, cc, _ in self.dets if cc == c and w[-1].start_ns <= st <= w[-1].end_ns)
+                    n = {c: sum(1 for st, cc, _ in self.dets if cc == c and a <= st <= b)
                          for c in self.p["cameras"]}
-                if min(n.values()) >= int(self.p["frames_per_station"]):
+                    n_smr = {}
+                    for st, name, _ in self.tracker:
+                        if a <= st <= b:
+                            n_smr[name] = n_smr.get(name, 0) + 1
+                # the station must be usable by the calibration (calibrate: the probe SMR read, >= 3 of
+                # the constellation read twice): a station without them is skipped there, and a
+                # reference station skipped moves X* to the next station's reading
+                tr = self.cell.get("tracker", {})
+                n_const = sum(n_smr.get(c, 0) >= 2 for c in tr.get("constellation", []))
+                if min(n.values()) >= int(self.p["frames_per_station"]) and n_const >= 3 \
+                        and n_smr.get(tr.get("probe_smr", "smr_star"), 0) >= 1:
                     return True
         return False
 
@@ -245,8 +256,9 @@ class PicmsCalibrationNode(Node):
                 self.get_logger().info(f"station {k}: stage to {np.round(target * 1e3, 3).tolist()} mm")
                 if not self._wait_settled(target, t_cmd):
                     raise CalibrationError(f"the stage never settled at {np.round(target * 1e3, 3).tolist()} mm "
-                                           f"with {self.p['frames_per_station']} usable frames per camera "
-                                           f"within {self.p['settle_timeout_s']} s (see the skipped-frame warnings)")
+                                           f"with {self.p['frames_per_station']} usable frames per camera and "
+                                           "readings of the probe SMR and >= 3 constellation SMRs within "
+                                           f"{self.p['settle_timeout_s']} s (see the skipped-frame warnings)")
             self._command(ref)
             with self.lock:
                 rec = Recording(cell=self.cell, camera_info=dict(self.info),
