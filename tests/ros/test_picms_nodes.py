@@ -66,6 +66,27 @@ def test_calibration_service_names_unsettled_stage_and_keeps_file(start_node, ro
     assert out.read_text() == "good: calibration\n"
 
 
+def test_calibration_without_tracker_names_what_is_missing(start_node, ros_node, tmp_path):
+    """Stage and cameras but no tracker: the first station settles with frames, and the calibration
+    stops there naming the missing readings (before, it moved on, and a reference station without
+    the tracker's readings moved X* to the next station's reading)."""
+    from metro_msgs.srv import RunPicmsCalibration
+
+    out = tmp_path / "picms_calibration.yaml"
+    start_node("picms_nodes", "picms_stage_sim")
+    start_node("picms_nodes", "picms_camera_sim", "--ros-args", "-p", "rate_hz:=2.0")
+    cal = start_node("picms_nodes", "picms_calibration", "--ros-args", "-p", f"output_file:={out}",
+                     "-p", "settle_timeout_s:=8.0", "-p", "dwell_s:=1.0")
+    cli = ros_node.create_client(RunPicmsCalibration, "/picms/run_calibration")
+    assert ros_node.spin_until(cli.service_is_ready, timeout=30), cal.log()
+    fut = cli.call_async(RunPicmsCalibration.Request(write_file=True))
+    assert ros_node.spin_until(fut.done, timeout=90), cal.log()
+    r = fut.result()
+    assert not r.success and "station 0" in r.message and "no reading of the probe SMR" in r.message, r.message
+    assert "settled, but" in r.message and "never settled" not in r.message, r.message
+    assert not out.exists()
+
+
 def test_namespace_moves_the_stage_and_its_command(start_node, ros_node):
     """Relative names: under __ns:=/cell_b the stage listens and publishes in /cell_b only."""
     from rclpy.qos import qos_profile_sensor_data

@@ -191,9 +191,12 @@ class PicmsCalibrationNode(Node):
         self.cmd.publish(stage_command(q))
 
     def _wait_settled(self, target, t_cmd_ns):
+        """Wait until the stage has settled at ``target`` for dwell_s with the frames and tracker readings a
+        station needs. Returns "" when it has, else what was missing when settle_timeout_s ran out."""
         res = float(self.cell["stage"]["resolution"])
         deadline = time.monotonic() + float(self.p["settle_timeout_s"])
         dwell_ns = int(float(self.p["dwell_s"]) * 1e9)
+        missing = "the stage never settled there"
         while time.monotonic() < deadline:
             time.sleep(0.1)
             with self.lock:
@@ -217,11 +220,17 @@ class PicmsCalibrationNode(Node):
                 # the constellation read twice): a station without them is skipped there, and a
                 # reference station skipped moves X* to the next station's reading
                 tr = self.cell.get("tracker", {})
+                star = tr.get("probe_smr", "smr_star")
                 n_const = sum(n_smr.get(c, 0) >= 2 for c in tr.get("constellation", []))
-                if min(n.values()) >= int(self.p["frames_per_station"]) and n_const >= 3 \
-                        and n_smr.get(tr.get("probe_smr", "smr_star"), 0) >= 1:
-                    return True
-        return False
+                short = [f"{c}: {k} usable frame(s)" for c, k in n.items() if k < int(self.p["frames_per_station"])]
+                if n_const < 3:
+                    short.append(f"{n_const} constellation SMR(s) read twice (3 needed)")
+                if n_smr.get(star, 0) < 1:
+                    short.append(f"no reading of the probe SMR {star}")
+                if not short:
+                    return ""
+                missing = "settled, but " + "; ".join(short) + " (see the skipped-frame warnings; is the tracker running?)"
+        return missing
 
     def run(self, write_file=True):
         """The whole calibration; returns (success, message, PicmsCalibration)."""
@@ -254,11 +263,10 @@ class PicmsCalibrationNode(Node):
                 t_cmd = self.get_clock().now().nanoseconds
                 self._command(target)
                 self.get_logger().info(f"station {k}: stage to {np.round(target * 1e3, 3).tolist()} mm")
-                if not self._wait_settled(target, t_cmd):
-                    raise CalibrationError(f"the stage never settled at {np.round(target * 1e3, 3).tolist()} mm "
-                                           f"with {self.p['frames_per_station']} usable frames per camera and "
-                                           "readings of the probe SMR and >= 3 constellation SMRs within "
-                                           f"{self.p['settle_timeout_s']} s (see the skipped-frame warnings)")
+                missing = self._wait_settled(target, t_cmd)
+                if missing:
+                    raise CalibrationError(f"station {k} at {np.round(target * 1e3, 3).tolist()} mm not complete "
+                                           f"within {self.p['settle_timeout_s']} s: {missing}")
             self._command(ref)
             with self.lock:
                 rec = Recording(cell=self.cell, camera_info=dict(self.info),
