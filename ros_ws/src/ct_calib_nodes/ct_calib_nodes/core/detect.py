@@ -281,10 +281,11 @@ class DetectionSettings:
         disables (the former behaviour).
     two_model_pass : bool
         A shadow refused by every background model (the one-direction model's structure screens,
-        the corner model, the partial edge) is kept on its one-direction measurement, with the
-        difference to its measurement on the ``model_check_degree`` surface in its covariance,
-        when no dark pixel lies within ``proximity_margin_px`` outside it (``_two_model_pass``).
-        False: refused as ``background_structure`` (the former behaviour).
+        the corner model, the partial edge) is kept on its one-direction measurement when no dark
+        pixel lies within ``proximity_margin_px`` outside it, with two terms in its covariance: the
+        difference to its measurement on the ``model_check_degree`` surface, and the shift when the
+        one-direction background is corrected by its misfit next to the shadow
+        (``_two_model_pass``). False: refused as ``background_structure`` (the former behaviour).
     """
 
     segment_depth: float = 0.10
