@@ -19,7 +19,8 @@ z-score |mean| <= 0.3 and sd in 0.8 to 1.25; no positioning trend beyond its unc
 
 Error-map components: each of the six (positioning, X / Y straightness, pitch, yaw, roll) against the
 truth in units of its stated u at positions 2..K, and the chi-square of its K errors under the map's
-joint covariance (``--trials 0`` runs the error-map part alone).
+joint covariance, for the multi-projection map and (keys ``single_*``) the single-projection map of the
+same frames (``--trials 0`` runs the error-map part alone).
 
 Usage:  .venv/bin/python tests/benchmarks/validate_ct_rendered_mc.py [--trials 48] [--maps 6] [--workers 2]
 Prints a table, then ONE JSON line.
@@ -83,17 +84,19 @@ def main():
               f"max |err/u| {m['max_abs_z']:.2f}, err at the far end {m['positioning_error_um'][-1]:+.2f} um "
               f"(u {m['u_positioning_um'][-1]:.2f})")
     comp = {}
-    if good_maps:
-        print("error-map components against the truth, positions 2..K, err/u: mean, sd, max |z|; "
-              "chi2 / rank of each component's K errors under the joint covariance (sum over maps)")
-        for name in good_maps[0]["component_z"]:
-            zc = np.concatenate([m["component_z"][name] for m in good_maps])
-            c2 = sum(m["component_chi2_dof"][name][0] for m in good_maps)
-            dof = sum(m["component_chi2_dof"][name][1] for m in good_maps)
-            comp[name] = {"z_mean": round(float(zc.mean()), 3), "z_sd": round(float(zc.std(ddof=1)), 3),
-                          "max_abs_z": round(float(np.abs(zc).max()), 2), "chi2_per_dof": round(c2 / max(dof, 1), 3),
-                          "dof": dof}
-            r = comp[name]
+    for prefix, label in (("", "multi-projection"), ("single_", "single-projection")):
+        maps_m = [m for m in good_maps if prefix + "component_z" in m]
+        if not maps_m:
+            continue
+        print(f"{label} error-map components against the truth ({len(maps_m)} maps), positions 2..K, err/u: mean, "
+              "sd, max |z|; chi2 / rank of each component's K errors under the joint covariance (sum over maps)")
+        for name in maps_m[0][prefix + "component_z"]:
+            zc = np.concatenate([m[prefix + "component_z"][name] for m in maps_m])
+            c2 = sum(m[prefix + "component_chi2_dof"][name][0] for m in maps_m)
+            dof = sum(m[prefix + "component_chi2_dof"][name][1] for m in maps_m)
+            r = comp[prefix + name] = {"z_mean": round(float(zc.mean()), 3), "z_sd": round(float(zc.std(ddof=1)), 3),
+                                       "max_abs_z": round(float(np.abs(zc).max()), 2),
+                                       "chi2_per_dof": round(c2 / max(dof, 1), 3), "dof": dof}
             print(f"  {name:15s} {r['z_mean']:+6.2f} {r['z_sd']:5.2f} {r['max_abs_z']:5.2f}   "
                   f"chi2/dof {r['chi2_per_dof']:.2f} ({dof})")
     out = {"trials": len(trials), "calibrated": len(ok), "views": args.views, "wall_s": round(wall, 1),
