@@ -210,6 +210,8 @@ class CtErrorMotion(Node):
                 status, text = "poor_fit", "found inadequate by the discrepancy engine: " + text
             if mode == "multi":
                 self.last_map_status, self.last_solve_t = (status, text), time.monotonic()
+            if final:            # stored before it is published: a restart re-publishes what was seen
+                self._store(em, ks, mode, status, text, msg)
             if not final and self.valid[mode] is not None and self.valid_campaign.get(mode) == self.guard.campaign_id:
                 pass   # this campaign's final map is out: a re-solve never re-publishes a shorter, growing one
             elif status == "success" or marked or self.valid[mode] is None:
@@ -220,8 +222,6 @@ class CtErrorMotion(Node):
             else:
                 self.get_logger().error(f"{mode} error map not usable ({text}): not published; the last valid map "
                                         "stays latched")
-            if final:
-                self._store(em, ks, mode, status, text, msg)
         if final and self.last_map_status is not None and self.last_map_status[0] == "success":
             self.journal.event("final", positions=len(self.acc.positions))   # nothing to resume
         self.get_logger().info(f"error map updated: {len(self.results['multi'])} position(s) solved")
@@ -296,7 +296,6 @@ class CtErrorMotion(Node):
                 continue
             if self.valid[mode] is msg:
                 self.valid[mode] = None
-            self.pubs[mode].publish(msg)
             if mode == "multi":
                 self.last_map_status = ("poor_fit", rep.status.message)
             rec = self.stored_rec[mode]
@@ -304,6 +303,7 @@ class CtErrorMotion(Node):
                 self.history.supersede(rec, "poor_fit", rep.status.message[:2000], msg=msg, type_name=MSG_TYPE,
                                        extra={"verdict": str(rep.verdict), "positions_marked": sorted(
                                            str(k) for k in marks)})
+            self.pubs[mode].publish(msg)                 # after the superseding record is stored
             self.get_logger().error(f"{mode} error map of stamp {stamp[0]} s: motions marked POOR_FIT "
                                     f"({', '.join(str(k) for k in marks)}): {rep.verdict}")
 
