@@ -431,7 +431,8 @@ class FrameDetections:
     two_models : ndarray of shape (M,), bool
         Kept by the two-model pass: no single background model held round this shadow; it is
         measured on the one-direction model and its covariance holds the difference to a
-        surface model's centre (``DetectionSettings.two_model_pass``).
+        surface model's centre and the shift from correcting the background by its misfit next
+        to the shadow (``DetectionSettings.two_model_pass``).
     level_shift_px : float
         How far inside the unblurred shadow's iso-level contour the blur moved the edge level
         crossing, for the frame's median ball [px] (0 when the edge spread is not measured). The
@@ -1736,7 +1737,7 @@ def _fit_corner(trans, cand, c, theta1, st):
         return _CornerModel(True, "", ratio=ratio, n=n)          # refused by the caller: no more work
     # the misfit next to the shadow: mean residual of the inner ring (4 px) in 12 sectors
     ang = np.arctan2(ys, xs)
-    sec = np.floor((ang + np.pi) / (2 * np.pi) * 12).astype(int) % 12
+    sec = _sector_of(ang)
     inner = np.hypot(xs, ys) < rin + 4.0
     sector_res = np.array([float(np.mean(res[(sec == k) & inner])) if np.any((sec == k) & inner) else 0.0
                            for k in range(12)])
@@ -1761,6 +1762,17 @@ def _fit_corner(trans, cand, c, theta1, st):
     cov_q = rms ** 2 * np.linalg.pinv(J.T @ J)
     return _CornerModel(True, "", y0, x0, np.exp(logb), grad, ratio, n, np.concatenate([p, coef]), cov_q,
                         (X.astype(np.float64), Y.astype(np.float64)), sector_res)
+
+def _sector_of(angle):
+    """The 30 deg sector (0..11, centred as in :func:`_sector_interp`) of ``angle`` in [-pi, pi] [rad]."""
+    return np.floor((angle + np.pi) / (2 * np.pi) * 12).astype(np.intp) % 12
+
+
+def _sector_means(sec, values):
+    """(12,) mean of ``values`` in each sector ``sec`` (0 where a sector holds none)."""
+    n = np.bincount(sec, minlength=12)
+    return np.where(n > 0, np.bincount(sec, values, minlength=12) / np.maximum(n, 1), 0.0)
+
 
 def _sector_interp(angle, per_sector):
     """Values given per 30 deg sector (12, centred at -pi + (k + 0.5) pi / 6) interpolated
@@ -2054,11 +2066,9 @@ def _ring_shift(trans, cand, model, c, st):
     ok = use & (B > 1e-6)
     inner = ok & (np.hypot(X, Y) < rin + 2.0)
     ang = np.arctan2(Y, X)
-    sec = np.floor((ang + np.pi) / (2 * np.pi) * 12).astype(np.intp) % 12
+    sec = _sector_of(ang)
     res = np.log(np.where(ok, win, 1.0)) - np.log(np.where(ok, B, 1.0))
-    n_in = np.bincount(sec[inner], minlength=12)
-    sres = np.where(n_in > 0, np.bincount(sec[inner], res[inner], minlength=12) / np.maximum(n_in, 1), 0.0)
-    f = _sector_interp(ang, sres)
+    f = _sector_interp(ang, _sector_means(sec[inner], res[inner]))
     k1 = np.array([c])
     sub = _subset(cand, k1)
     flat = _flat_background(cand.centre[k1])
@@ -2115,7 +2125,7 @@ def _arc_measure(trans, cand, c, meas, st, drange, depth_ref, rej):
     d = np.concatenate([dh, dv])
     noise = max(1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2.0), 1e-9)
     xs, ys, ls = X[use], Y[use], L[use]
-    sec = np.floor((np.arctan2(ys, xs) + np.pi) / (2 * np.pi) * 12).astype(np.intp) % 12
+    sec = _sector_of(np.arctan2(ys, xs))
     A = np.column_stack([np.ones_like(xs), xs, ys])
     good = np.bincount(sec, minlength=12) >= 3
     if np.count_nonzero(good) < st.min_arc_sectors:
@@ -2188,9 +2198,7 @@ def _arc_measure(trans, cand, c, meas, st, drange, depth_ref, rej):
     # and the plane's misfit next to the shadow: the centre measured again with the plane
     # corrected by the inner ring's (2 px) mean residual per kept sector (interpolated in angle)
     inner = sel & (np.hypot(xs, ys) < rin + 2.0)
-    n_in = np.bincount(sec[inner], minlength=12)
-    sres = np.where(good & (n_in > 0), np.bincount(sec[inner], res[inner], minlength=12) / np.maximum(n_in, 1), 0.0)
-    f = _sector_interp(np.arctan2(Y, X), sres)
+    f = _sector_interp(np.arctan2(Y, X), np.where(good, _sector_means(sec[inner], res[inner]), 0.0))
     try:
         trans[sl] = (saved / (bg * np.exp(f))).astype(trans.dtype)
         mi = _measure_edges_and_fit(trans, flat, sub, st)
@@ -2318,9 +2326,7 @@ def _ray_mask(model, phi):
     """(C, nr) rays kept (their 30 deg sector in ``model.ray_keep``), or None (all)."""
     if model.ray_keep is None:
         return None
-    ang = np.where(phi > np.pi, phi - 2 * np.pi, phi)
-    sec = np.floor((ang + np.pi) / (2 * np.pi) * 12).astype(np.intp) % 12
-    return np.asarray(model.ray_keep, bool)[:, sec]
+    return np.asarray(model.ray_keep, bool)[:, _sector_of(np.where(phi > np.pi, phi - 2 * np.pi, phi))]
 
 
 def _edge_spread2(slope, level, valid, q_in, r_in, radius, dr, st):
