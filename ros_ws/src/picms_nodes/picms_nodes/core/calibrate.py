@@ -180,6 +180,21 @@ class Station:
     readings: dict = field(default_factory=dict)     # smr -> list[(3,)]
 
 
+def tracker_shortfall(counts: dict, cell: dict) -> list:
+    """What a station's tracker readings (``counts``: SMR name -> number of readings) lack for the
+    calibration to use the station: at least one reading of the probe SMR and two of each of at least
+    3 constellation SMRs (the probe frame). Empty when the station is usable."""
+    tr = cell.get("tracker", {})
+    star = tr.get("probe_smr", "smr_star")
+    n_const = sum(counts.get(c, 0) >= 2 for c in tr.get("constellation", []))
+    out = []
+    if n_const < 3:
+        out.append(f"{n_const} constellation SMR(s) read twice (3 needed)")
+    if counts.get(star, 0) < 1:
+        out.append(f"no reading of the probe SMR {star}")
+    return out
+
+
 def assign(windows, frames_detected, tracker):
     """Stations from windows, detections [(stamp_ns, camera, DiscDetection)], readings [(stamp_ns, name, p)]."""
     st = [Station(w) for w in windows]
@@ -338,11 +353,7 @@ def calibrate(stations: list[Station], camera_info: dict, cell: dict) -> Calibra
     if len(cams) < 2:
         raise CalibrationError(f"CameraInfo missing: intrinsics for {cams} only (need the cameras' K and D)")
     # usable stations: SMR*, >= 3 constellation SMRs
-    good = []
-    for s in stations:
-        present = [c for c in const_names if len(s.readings.get(c, [])) >= 2]
-        if len(s.readings.get(star, [])) >= 1 and len(present) >= 3:
-            good.append(s)
+    good = [s for s in stations if not tracker_shortfall({k: len(v) for k, v in s.readings.items()}, cell)]
     if not good:
         have = sorted({k for s in stations for k in s.readings})
         n_c = max((sum(len(s.readings.get(c, [])) >= 2 for c in const_names) for s in stations), default=0)

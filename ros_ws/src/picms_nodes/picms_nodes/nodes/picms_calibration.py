@@ -38,7 +38,7 @@ from ct_calib_nodes.nodes import plant
 from ct_calib_nodes.nodes.bad_input import BadInputCounter
 from ct_calib_nodes.nodes.runner import QOS_LATCHED, declare_parameters
 
-from ..core.calibrate import CalibrationError, settled_windows
+from ..core.calibrate import CalibrationError, settled_windows, tracker_shortfall
 from ..core.campaign import Recording, appendix_a_pattern
 from ..core.picms_discrepancy import grid_pattern, judge, motion_of
 from ..core.detect import DetectionError, detect_disc
@@ -216,17 +216,11 @@ class PicmsCalibrationNode(Node):
                     for st, name, _ in self.tracker:
                         if a <= st <= b:
                             n_smr[name] = n_smr.get(name, 0) + 1
-                # the station must be usable by the calibration (calibrate: the probe SMR read, >= 3 of
-                # the constellation read twice): a station without them is skipped there, and a
-                # reference station skipped moves X* to the next station's reading
-                tr = self.cell.get("tracker", {})
-                star = tr.get("probe_smr", "smr_star")
-                n_const = sum(n_smr.get(c, 0) >= 2 for c in tr.get("constellation", []))
+                # the station must be usable by the calibration (tracker_shortfall): a station without
+                # the tracker's readings is skipped there, and a reference station skipped moves X* to
+                # the next station's reading
                 short = [f"{c}: {k} usable frame(s)" for c, k in n.items() if k < int(self.p["frames_per_station"])]
-                if n_const < 3:
-                    short.append(f"{n_const} constellation SMR(s) read twice (3 needed)")
-                if n_smr.get(star, 0) < 1:
-                    short.append(f"no reading of the probe SMR {star}")
+                short += tracker_shortfall(n_smr, self.cell)
                 if not short:
                     return ""
                 missing = "settled, but " + "; ".join(short) + " (see the skipped-frame warnings; is the tracker running?)"
