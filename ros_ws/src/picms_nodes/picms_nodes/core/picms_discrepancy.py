@@ -511,7 +511,10 @@ def build(result: CalibrationResult, camera_info: dict, n_folds: int = 5, k1_sec
                  # no shift is shared by a station's three cameras in pixels (a station's 3-D error moves
                  # each camera's disc its own way), and three members per station are too few to estimate
                  # one: an effect linear in the stage position was taken for it (discrepancy.noise_floor)
-                 shared_shift=False)
+                 shared_shift=False,
+                 # stations 4 mm apart: a strong effect (a lens k1 of tens of px) inflates the neighbour-difference
+                 # floor ~4x; the refit and the findings' uncertainties use the floor after the terms
+                 refloor_after=True)
     tk_rows = np.where(comp >= 2)[0]
     tk_idx = {(int(st_of[r]), int(comp[r])): r for r in tk_rows}
     cands = []
@@ -679,6 +682,15 @@ def run(result: CalibrationResult, camera_info: dict, *, progress=None, max_term
     floor_d["stated_sigma_median_px"] = float(np.median(ds.sigma[:ext["n_cam_rows"]]))
     for a, name in enumerate(COMPONENTS[:len(fl.factor)]):     # the engine states them at the overall median
         floor_d["independent_sd"][name] = float(fl.factor[a] * np.median(ds.sigma[ds.component == a]))
+    if res.get("floor_after") is not None:         # the floor the refit and the findings' u are stated under
+        fa = res["floor_after"]
+        floor_d["after_terms"] = {
+            "independent_sd": {name: float(fa.factor[a] * np.median(ds.sigma[ds.component == a]))
+                               for a, name in enumerate(COMPONENTS[:len(fa.factor)])},
+            "u_factor": float(res["after"].get("u_factor", 1.0)),
+            "note": "the joint fit and the findings' uncertainties are stated under this floor (the residuals' "
+                    "after the findings; the floor above, of the residuals before, decides the names), times "
+                    "u_factor (the Birge ratio of that fit, at least 1)"}
     sd = fl.factor[:2] * floor_d["stated_sigma_median_px"]
 
     def fmt(key, unit):
