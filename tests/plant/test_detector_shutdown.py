@@ -41,12 +41,16 @@ def test_detector_stops_cleanly_with_frames_held(start_node, ros_node, tmp_path)
     code = det.stop()
     log = det.log()
     assert "Traceback" not in log and code == 0, log[-3000:]
-    # 3 frames: held for identity initialisation, or (a stop landing while the third is still being
-    # detected, seen once in a loaded CI run) 2 held and 1 reported as interrupted
-    assert "'frames': 3, " in log, log[-3000:]
+    # every frame published is accounted for at the stop: paired frames are held for identity
+    # initialisation, or (a stop landing while the third is still being detected, seen once in a loaded CI
+    # run) reported as interrupted; an image whose stage reading had not arrived by the stop (seen once in
+    # a loaded local run: 2 frames, 1 image unpaired) is counted as still unpaired
+    frames = int(re.search(r"'frames': (\d+), ", log).group(1))
+    unpaired = int(re.search(r"still unpaired at stop \{'image': (\d+)", log).group(1))
     held = re.findall(r"(\d+) frame\(s\) still held for identity initialisation were not published", log)
     interrupted = len(re.findall(r"1 frame in progress at the stop \(stamp \d+ ns\) was dropped", log))
-    assert int(held[-1] if held else 0) + interrupted == 3, log[-3000:]
+    assert frames + unpaired == 3 and frames >= 2, log[-3000:]
+    assert int(held[-1] if held else 0) + interrupted == frames, log[-3000:]
 
 
 def test_detector_reports_a_frame_interrupted_at_stop(capsys):
