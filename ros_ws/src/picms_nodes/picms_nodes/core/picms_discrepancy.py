@@ -59,35 +59,75 @@ class PicmsTerm:
     blind: str = ""                    # why no acquisition of this kind can show it (null limit)
 
 
+#: steps of the decentring and the affine (aspect, skew) terms' silhouette bases (validated sizes ~8e-4
+#: and ~1e-3: the tangent suffices)
+TAN_STEP = 1e-4
+AFFINE_STEP = 1e-4
+EDGE_TERMS = ("k1", "p1", "p2", "fx", "skew")      # the order of ctx["edge"]'s last axis
+
+
+def _edge(c, j, *names):
+    """(m, 2, k) the silhouette bases of camera j for the named EDGE_TERMS."""
+    return c["edge"][j][:, :, [EDGE_TERMS.index(n) for n in names]]
+
+
 def _b_k1(c, j):
     # k1 bends every silhouette edge point, not only the disc's centre: the basis is the shift of the cone
     # the detector fits to the edge points (_silhouette_shift). Without edge points in
     # the design: the centre point's own shift k1 r^2 n (which misses the disc's size, ~3 rho^2 n)
-    if c["k1_edge"][j] is not None:
-        return c["k1_edge"][j]
+    if c["edge"][j] is not None:
+        return _edge(c, j, "k1")
     x, y = c["n"][j].T
     r2 = x * x + y * y
     return c["f"][j] * np.stack([x * r2, y * r2], 1)[:, :, None]
 
 
-def _silhouette_shift(intr, edges_px, n0, k1):
-    """(2,) shift of the detector's cone axis (normalised coordinates) per unit k1, for a radial k1 missing
-    from CameraInfo: the cone fitted to the silhouette edge points edges_px (raw px) undistorted with
+def _silhouette_shifts(intr, edges_px, n0, steps):
+    """(2, k) shifts of the detector's cone axis (normalised coordinates) per unit of k intrinsic parameters
+    CameraInfo leaves out: the cone fitted to the silhouette edge points edges_px (raw px) undistorted with
     CameraInfo (what the detector reported), minus the cone fitted to the same points undistorted with
-    CameraInfo's D plus k1 (what it would have reported had CameraInfo carried the lens), over k1: the
-    secant of the detector's response at k1 (the tangent as k1 -> 0). The nest's missing sector and the
-    disc's size enter through the edge points themselves (a full outline of angular radius rho moves by
-    ~k1 (r^2 + 3 rho^2) n, the centre point alone by k1 r^2 n)."""
-    def axis(xx):
+    CameraInfo changed by the step (what it would have reported had CameraInfo carried it), over the step's
+    size: the secant of the detector's response (the tangent as the step -> 0). ``steps``: k pairs
+    (Intrinsics, size) from :func:`_steps`. The nest's missing sector and the disc's size enter through the
+    edge points themselves: a full outline of angular radius rho moves by ~k1 (r^2 + 3 rho^2) n, the centre
+    point alone by k1 r^2 n; a decentring distortion or a pixel aspect / skew error stretches the outline
+    (by ~rho grad(T), or affinely), which moves the cone fitted to a partial outline, not to a full one."""
+    def axis(intr_, xx):
+        xx = intr_.undistort(xx)
         r = np.column_stack([xx, np.ones(len(xx))])
         r /= np.linalg.norm(r, axis=1, keepdims=True)
         a0 = np.array([n0[0], n0[1], 1.0]) / np.hypot(np.hypot(n0[0], n0[1]), 1.0)
         p, _cov, _res = fit_cone(r, [n0[0], n0[1], float(np.mean(np.arccos(np.clip(r @ a0, -1, 1))))])
         return p[:2]
-    D = np.asarray(intr.D, float).copy()
-    D[0] += k1
-    with_k1 = Intrinsics(intr.K, D, intr.width, intr.height)
-    return (axis(intr.undistort(edges_px)) - axis(with_k1.undistort(edges_px))) / k1
+    base = axis(intr, edges_px)
+    return np.stack([(base - axis(changed, edges_px)) / size for changed, size in steps], 1)
+
+
+def _steps(intr, names, k1=1e-4):
+    """(Intrinsics, size) per name: CameraInfo with one parameter changed, in the catalogue terms' units:
+    'k1' (by ``k1``: the secant there), 'p1', 'p2' (by TAN_STEP), 'fx' (fx by the factor 1 + AFFINE_STEP:
+    pixel_aspect_error's dfx_rel) and 'skew' (K[0, 1] by AFFINE_STEP fx: sensor_skew)."""
+    out = []
+    for n in names:
+        K, D = np.array(intr.K, float), np.array(intr.D, float)
+        if n in ("k1", "p1", "p2"):
+            i, h = {"k1": (0, k1), "p1": (2, TAN_STEP), "p2": (3, TAN_STEP)}[n]
+            D[i] += h
+        elif n == "fx":
+            h = AFFINE_STEP
+            K[0, 0] *= 1.0 + h
+        elif n == "skew":
+            h = AFFINE_STEP
+            K[0, 1] += h * K[0, 0]
+        else:
+            raise ValueError(n)
+        out.append((Intrinsics(K, D, intr.width, intr.height), h))
+    return out
+
+
+def _silhouette_shift(intr, edges_px, n0, k1):
+    """(2,) the cone axis's shift per unit k1 (:func:`_silhouette_shifts` with the secant at ``k1``)."""
+    return _silhouette_shifts(intr, edges_px, n0, _steps(intr, ["k1"], k1))[:, 0]
 
 
 def _b_k2(c, j):
@@ -97,6 +137,10 @@ def _b_k2(c, j):
 
 
 def _b_tangential(c, j):
+    # like k1: the shift of the cone the detector fits to the edge points; the centre point's own shift
+    # without edge points in the design
+    if c["edge"][j] is not None:
+        return _edge(c, j, "p1", "p2")
     x, y = c["n"][j].T
     r2 = x * x + y * y
     b1 = np.stack([2 * x * y, r2 + 2 * y * y], 1)
@@ -115,6 +159,9 @@ def _b_focal(c, j):
 
 
 def _b_aspect(c, j):
+    # the cone's shift when the edge points are present (the outline is stretched; see _silhouette_shifts)
+    if c["edge"][j] is not None:
+        return _edge(c, j, "fx")
     b = np.zeros((len(c["n"][j]), 2, 1))
     b[:, 0, 0] = c["f"][j] * c["n"][j][:, 0]
     return b
@@ -131,6 +178,8 @@ def _b_pos_drift(c, j):
 
 
 def _b_skew(c, j):
+    if c["edge"][j] is not None:
+        return _edge(c, j, "skew")
     b = np.zeros((len(c["n"][j]), 2, 1))
     b[:, 0, 0] = c["f"][j] * c["n"][j][:, 1]
     return b
@@ -338,7 +387,7 @@ def _camera_block(result, camera_info, U, obs, cov, cams, dA, tnorm, n_pose, p_n
     """Rows, Jacobian and context of the disc-centre residuals (px). ``k1_secant``: per camera, the k1
     at which the lens term's basis is the secant (None: the tangent, k1 -> 0)."""
     rows = {"r": [], "J": [], "sig": [], "comp": [], "st": [], "cam": []}
-    ctx = {k: [] for k in ("jdist", "n", "f", "t", "jrot", "jpos", "ju", "ok", "idx", "k1_edge")}
+    ctx = {k: [] for k in ("jdist", "n", "f", "t", "jrot", "jpos", "ju", "ok", "idx", "edge")}
     edges = result.design.get("edges_px")
     row = 0
     for j, c in enumerate(cams):
@@ -378,10 +427,11 @@ def _camera_block(result, camera_info, U, obs, cov, cams, dA, tnorm, n_pose, p_n
             # with the secant at the first pass's k1 (doc/picms_discrepancy.md)
             k1s = 1e-4 if k1_secant is None or not np.isfinite(k1_secant[j]) or abs(k1_secant[j]) < 1e-4 \
                 else float(k1_secant[j])
-            ctx["k1_edge"].append(f * np.array([_silhouette_shift(camera_info[c], edges[j][i], obs[j, i], k1s)
-                                                for i in ok])[:, :, None])
+            steps = _steps(camera_info[c], EDGE_TERMS, k1s)
+            ctx["edge"].append(f * np.array([_silhouette_shifts(camera_info[c], edges[j][i], obs[j, i], steps)
+                                             for i in ok]))       # (m, 2, 5): EDGE_TERMS
         else:
-            ctx["k1_edge"].append(None)
+            ctx["edge"].append(None)
         ctx["f"].append(f)
         ctx["t"].append(tnorm[ok])
         ctx["jrot"].append(jr)
