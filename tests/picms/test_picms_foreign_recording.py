@@ -122,3 +122,31 @@ def test_bad_recordings_named_and_good_file_kept(tmp_path, sessions, cell_file):
     res, summary = offline.run(bag, cell_file, None, log=lambda s: None)
     assert res is not None and any("bytes" in p for p in summary["problems"])
     # (a stage that never settles: tests/picms/test_picms_calibration.py and tests/ros)
+
+
+def test_poor_fit_calibration_not_written_unless_forced(tmp_path, sessions, cell_file, capsys):
+    # CameraInfo's fx 0.3 % too large (a pixel aspect error the model does not have): the calibration
+    # converges with camera chi2/dof far above 4, POOR_FIT. As the live node, the offline tool must not
+    # write it over the file plant software reads (exit 3, named), and writes it only with --force
+    import copy
+
+    from picms_nodes.core.camera import Intrinsics
+    rec = copy.copy(sessions[0][0])
+    info = {}
+    for k, v in rec.camera_info.items():
+        K = v.K.copy()
+        K[0, 0] *= 1.003
+        info[k] = Intrinsics(K, v.D, v.width, v.height)
+    rec.camera_info = info
+    bag = tmp_path / "aspect_bag"
+    _write(bag, rec)
+    out = tmp_path / "picms_calibration.yaml"
+    out.write_text("good: calibration\n")
+    args = [str(bag), "--cell", str(cell_file), "--out", str(out), "--history", "none"]
+    assert offline.main(args) == 3
+    assert out.read_text() == "good: calibration\n"
+    err = capsys.readouterr().err
+    assert "not written: POOR_FIT: camera chi2/dof" in err and "--force" in err, err[-2000:]
+    assert offline.main(args + ["--force"]) == 0
+    d = yaml.safe_load(out.read_text())
+    assert d["quality"]["camera_chi2_dof"] >= 4.0 and "pixels" in d["probe_point"]

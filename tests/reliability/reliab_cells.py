@@ -57,7 +57,8 @@ PICMS = CellSpec(
                     lambda rec, out: [rec, "--cell", str(pathlib.Path(rec).parent / "picms_cell.yaml"),
                                       "--out", str(pathlib.Path(out) / "picms_calibration.yaml")],
                     {0: "calibrated and written", 1: "no calibration (reason printed)",
-                     2: "bad arguments or unreadable cell file"})],
+                     2: "bad arguments or unreadable cell file",
+                     3: "calibrated, POOR_FIT: not written"})],
 )
 
 CELLS = {"ct": CT, "picms": PICMS}

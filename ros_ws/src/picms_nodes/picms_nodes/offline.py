@@ -1,7 +1,7 @@
 """Offline Pixel Probe calibration from a recording (one .mcap or a rosbag2 directory).
 
     picms_calibrate_offline RECORDING [--cell picms_cell.yaml] [--out picms_calibration.yaml]
-                            [--namespace /cell_b] [--history DB|none]
+                            [--namespace /cell_b] [--history DB|none] [--force]
 
 The same core as the live node (`core.pipeline`). ``--cell``: given, else ``picms_cell.yaml``
 beside the recording (in a rosbag2 directory or next to the .mcap), else the package default.
@@ -10,8 +10,12 @@ beside the recording (in a rosbag2 directory or next to the .mcap), else the pac
 or not, is stored in the calibration history (kind ``picms_calibration``, the recording's content
 hash and the cell file's sha256 as inputs; ``--history``, else ``$METRO_HISTORY_DB``, else
 ``~/.local/share/metro_cell/history.sqlite``; ``none`` = off).
+A POOR_FIT calibration (camera chi2/dof >= 4: its model does not explain the data) is not written, as
+the live node does not write one: plant software reads that file, and a good one there stays;
+``--force`` writes it anyway (its status is in the history and in this command's output).
 Exit codes: 0 calibrated and written; 1 no calibration (the reason is printed; an existing output
-file is left untouched); 2 bad arguments or unreadable cell file.
+file is left untouched); 2 bad arguments or unreadable cell file; 3 calibrated but POOR_FIT, not
+written (an existing output file is left untouched).
 """
 from __future__ import annotations
 
@@ -21,7 +25,7 @@ import pathlib
 import sys
 import time
 
-from .core.calibrate import CalibrationError
+from .core.calibrate import POOR_FIT_CHI2, CalibrationError, is_poor_fit
 from .core.pipeline import calibrate_recording
 from .io.files import calibration_dict, read_cell, write_calibration
 from .io.recording import find_namespace, iter_frames, read_recording
@@ -39,11 +43,11 @@ def find_cell_file(recording, cell_file=None):
     return pathlib.Path(_default_cell())
 
 
-def run(recording, cell_file=None, out=None, log=print, namespace=None, history="none"):
+def run(recording, cell_file=None, out=None, log=print, namespace=None, history="none", force=False):
     """Calibrate from a recording; returns (CalibrationResult or None, summary dict).
 
     ``history``: database path ("" = the default, "none" = not stored; the library default is none,
-    the command line's is the default database)."""
+    the command line's is the default database). ``force``: write ``out`` even for a POOR_FIT calibration."""
     cell_file = find_cell_file(recording, cell_file)
     cell = read_cell(cell_file)
     t0 = time.perf_counter()
@@ -65,7 +69,12 @@ def run(recording, cell_file=None, out=None, log=print, namespace=None, history=
                    problems=rep.problems + rep.read.errors, seconds=round(time.perf_counter() - t0, 2))
     for p in summary["problems"][:20]:
         log(f"  not used: {p}")
-    if out:
+    summary["poor_fit"] = is_poor_fit(res)
+    if out and summary["poor_fit"] and not force:
+        summary["not_written"] = (f"POOR_FIT: camera chi2/dof {float(res.chi2_dof):.3g} >= {POOR_FIT_CHI2:g} (the model "
+                                  f"does not explain the data); {out} left untouched (--force writes it)")
+        log(f"picms calibration not written: {summary['not_written']}")
+    elif out:
         write_calibration(res, out)
         summary["written"] = str(out)
     _store(history, res, None, recording, cell_file, ns, rec, summary, log)
@@ -100,14 +109,16 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     ap.add_argument("recording", help=".mcap file or rosbag2 directory")
     ap.add_argument("--cell", help="picms_cell.yaml (default: beside the recording, else the package's)")
-    ap.add_argument("--out", default="picms_calibration.yaml", help="output file (written only on success)")
+    ap.add_argument("--out", default="picms_calibration.yaml",
+                    help="output file (written only on success, and not for a POOR_FIT calibration)")
+    ap.add_argument("--force", action="store_true", help="write the output file for a POOR_FIT calibration too")
     ap.add_argument("--namespace", help="the cell's namespace in the recording (default: the one found)")
     ap.add_argument("--history", default="", help="calibration history database (default $METRO_HISTORY_DB or "
                                                   "~/.local/share/metro_cell/history.sqlite; none = off)")
     a = ap.parse_args(argv)
     try:
         res, summary = run(a.recording, a.cell, a.out, log=lambda s: print(s, file=sys.stderr),
-                           namespace=a.namespace, history=a.history)
+                           namespace=a.namespace, history=a.history, force=a.force)
     except (ValueError, FileNotFoundError) as exc:
         print(f"picms_calibrate_offline: {exc}", file=sys.stderr)
         return 2
@@ -117,7 +128,7 @@ def main(argv=None) -> int:
     d = calibration_dict(res)
     print(json.dumps({"probe_point_pixels": d["probe_point"]["pixels"], "p_tracker": d["probe_point"]["p_tracker"],
                       "chi2_dof": d["quality"]["camera_chi2_dof"]}), file=sys.stderr)
-    return 0
+    return 3 if "not_written" in summary else 0
 
 
 if __name__ == "__main__":

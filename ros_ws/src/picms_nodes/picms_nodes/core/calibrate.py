@@ -34,6 +34,16 @@ from .camera import Intrinsics, matrix_to_rotvec, rotvec_to_matrix
 from .detect import DetectionError, DiscDetection
 
 
+#: camera fit chi2/dof at or above which a calibration is POOR_FIT: published so, stored so in the history,
+#: and written to the calibration file plant software reads neither by the node nor by the offline tool
+POOR_FIT_CHI2 = 4.0
+
+
+def is_poor_fit(res) -> bool:
+    """True when the calibration's own camera fit says its model does not explain the data."""
+    return float(res.chi2_dof) >= POOR_FIT_CHI2
+
+
 class CalibrationError(ValueError):
     """The data cannot give a calibration; the message names the cause."""
 

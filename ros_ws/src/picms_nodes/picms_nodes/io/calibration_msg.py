@@ -5,6 +5,8 @@ import numpy as np
 from geometry_msgs.msg import Point
 from metro_msgs.msg import PicmsCalibration, PicmsCameraExtrinsics, SolveStatus
 
+from ..core.calibrate import is_poor_fit
+
 
 def _pt(v):
     return Point(x=float(v[0]), y=float(v[1]), z=float(v[2]))
@@ -14,7 +16,7 @@ def calibration_msg(res, stamp, file_path="") -> PicmsCalibration:
     m = PicmsCalibration()
     m.header.stamp = stamp
     m.header.frame_id = "tracker"
-    m.status = SolveStatus(code=SolveStatus.SUCCESS if res.chi2_dof < 4 else SolveStatus.POOR_FIT, message=res.message)
+    m.status = SolveStatus(code=SolveStatus.POOR_FIT if is_poor_fit(res) else SolveStatus.SUCCESS, message=res.message)
     m.camera_names = sorted(res.pixels)
     m.pixels = [float(v) for c in m.camera_names for v in res.pixels[c]]
     m.u_pixels = [float(v) for c in m.camera_names for v in res.u_pixels[c]]

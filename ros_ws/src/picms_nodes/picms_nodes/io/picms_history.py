@@ -32,15 +32,16 @@ import numpy as np
 
 from ct_calib_nodes.io.history import Input, Quantity, SolveRecord, cell_name
 
+from ..core.calibrate import is_poor_fit
+
 KIND = "picms_calibration"
 MSG_TYPE = "metro_msgs/msg/PicmsCalibration"
-POOR_FIT_CHI2 = 4.0     # camera fit chi2/dof at or above which a calibration is POOR_FIT (calibration_msg)
 
 
 def status_of(res) -> str:
     if res is None or not getattr(res, "success", True):
         return "failed"
-    return "success" if float(res.chi2_dof) < POOR_FIT_CHI2 else "poor_fit"
+    return "poor_fit" if is_poor_fit(res) else "success"
 
 
 def quantities(res) -> list:
