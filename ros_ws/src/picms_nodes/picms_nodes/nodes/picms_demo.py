@@ -119,8 +119,10 @@ def main(argv=None) -> int:
         cell_file = _default_cell()
     if bag.exists():
         res, s = run(bag, cell_file, off, log=lambda m: None)
-        summary["offline"] = {"success": res is not None, **({"error": s.get("error")} if res is None else {})}
-        if res is not None:
+        summary["offline"] = {"success": res is not None and "not_written" not in s,
+                              **({"error": s.get("error")} if res is None else {}),
+                              **({"not_written": s["not_written"]} if "not_written" in s else {})}
+        if res is not None and "written" in s:
             summary["offline_vs_truth"] = compare(yaml.safe_load(off.read_text()))
     print(json.dumps(summary, indent=1))
     return 0 if rc == 0 and summary.get("offline", {}).get("success") else 1
