@@ -134,6 +134,21 @@ def test_hidden_lens_distortion_named_and_measured(grid_session, grid_clean):
     assert f0["magnitude_u"] < 0.03 * f0["magnitude"], f0
 
 
+def _silhouette_rays(rng):
+    """A 12.7 mm sphere 170-190 mm from the camera near its axis, seen with a nest sector of 60-100 deg
+    missing: (centre in the camera frame, angular radius, unit rays of the visible outline every 2 deg)."""
+    pc = np.array([rng.uniform(-0.012, 0.012), rng.uniform(-0.012, 0.012), rng.uniform(0.17, 0.19)])
+    a = pc / np.linalg.norm(pc)
+    alpha = np.arcsin(0.00635 / np.linalg.norm(pc))
+    e1 = np.cross(a, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(a, e1)
+    phi = np.deg2rad(np.arange(0.0, 360.0, 2.0))
+    gap, half = rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(30, 50))
+    phi = phi[np.abs((phi - gap + np.pi) % (2 * np.pi) - np.pi) > half]
+    return pc, alpha, np.cos(alpha) * a + np.sin(alpha) * (np.outer(np.cos(phi), e1) + np.outer(np.sin(phi), e2))
+
+
 def test_k1_basis_moves_the_fitted_silhouette_cone():
     # exact physics, no renderer: the silhouette of a 12.7 mm sphere 170-190 mm away, a nest sector of
     # 60-100 deg missing, every edge point bent by a lens k1 that CameraInfo (D = 0) leaves out, and the
@@ -149,16 +164,7 @@ def test_k1_basis_moves_the_fitted_silhouette_cone():
     worst_tangent, worst_secant, worst_old = 0.0, 0.0, np.inf
     for k1 in (-0.3, -0.1, 0.1, 0.3):
         for _ in range(4):
-            pc = np.array([rng.uniform(-0.012, 0.012), rng.uniform(-0.012, 0.012), rng.uniform(0.17, 0.19)])
-            a = pc / np.linalg.norm(pc)
-            alpha = np.arcsin(0.00635 / np.linalg.norm(pc))
-            e1 = np.cross(a, [0.0, 1.0, 0.0])
-            e1 /= np.linalg.norm(e1)
-            e2 = np.cross(a, e1)
-            phi = np.deg2rad(np.arange(0.0, 360.0, 2.0))
-            gap, half = rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(30, 50))
-            phi = phi[np.abs((phi - gap + np.pi) % (2 * np.pi) - np.pi) > half]
-            rays = np.cos(alpha) * a + np.sin(alpha) * (np.outer(np.cos(phi), e1) + np.outer(np.sin(phi), e2))
+            pc, alpha, rays = _silhouette_rays(rng)
             x = rays[:, :2] / rays[:, 2:3]
             xo = x * (1 + k1 * (x * x).sum(1, keepdims=True))          # what the lens does
             ro = np.column_stack([xo, np.ones(len(xo))])
@@ -199,16 +205,7 @@ def test_decentring_and_aspect_bases_move_the_fitted_silhouette_cone(kind):
         for _ in range(8):
             a = rng.uniform(0, 2 * np.pi)
             theta = 8e-4 * np.array([np.cos(a), np.sin(a)]) if kind == "decentring" else np.array([1e-3])
-            pc = np.array([rng.uniform(-0.012, 0.012), rng.uniform(-0.012, 0.012), rng.uniform(0.17, 0.19)])
-            ax = pc / np.linalg.norm(pc)
-            alpha = np.arcsin(0.00635 / np.linalg.norm(pc))
-            e1 = np.cross(ax, [0.0, 1.0, 0.0])
-            e1 /= np.linalg.norm(e1)
-            e2 = np.cross(ax, e1)
-            phi = np.deg2rad(np.arange(0.0, 360.0, 2.0))
-            gap, half = rng.uniform(0, 2 * np.pi), np.deg2rad(rng.uniform(30, 50))
-            phi = phi[np.abs((phi - gap + np.pi) % (2 * np.pi) - np.pi) > half]
-            rays = np.cos(alpha) * ax + np.sin(alpha) * (np.outer(np.cos(phi), e1) + np.outer(np.sin(phi), e2))
+            pc, alpha, rays = _silhouette_rays(rng)
             n_true = pc[:2] / pc[2]
             if kind == "decentring":                        # what the lens does; CameraInfo's p are 0
                 xd = pd._distort_n(np.array([k1, 0, theta[0], theta[1], 0]), rays[:, :2] / rays[:, 2:3])
