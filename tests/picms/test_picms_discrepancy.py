@@ -381,6 +381,46 @@ def test_uncertainty_of_a_strong_term_stated_under_the_floor_after_it():
     assert abs(np.median(floors[True]) - 1.0) < 0.1 and np.median(floors[False]) > 2.0, floors
 
 
+def test_floor_after_the_terms_leaves_names_limits_and_unexplained_alone():
+    # Dataset.refloor_after changes only the refit and its u: the names, the detection limits and the
+    # structure left unexplained are decided under the floor before. Two components; a strong term mostly in
+    # the first (it inflates that component's floor 20-30x, not the second's, so the two whitenings span
+    # different model spaces); a sensor-field locate axis that overlaps the term and carries a real
+    # structure in the second component. Testing that axis against the model whitened under the floor after
+    # the term (a slip of the first version) leaked the term into it: delta BIC 41.5 instead of 14.0 at 30
+    # sigma, a spurious 57.9 at 60 sigma.
+    from ct_calib_nodes.core.discrepancy import Candidate, Dataset, analyse
+    rng = np.random.default_rng(12)
+    pts = pd.grid_pattern()[1:]
+    n_st, n_cam = len(pts), 3
+    st = np.repeat(np.arange(n_st), 2 * n_cam)
+    cam = np.tile(np.repeat(np.arange(n_cam), 2), n_st)
+    comp = np.tile([0, 1], n_st * n_cam)
+    xs, ys = (pts[:, k] / np.abs(pts[:, k]).max() for k in (0, 1))
+    basis = ((xs ** 2)[st] * np.where(comp == 0, 1.0, 0.2))[:, None]
+    jac = np.eye(2 * n_cam)[2 * cam + comp]
+    field = {"sensor field": np.column_stack([(xs ** 2)[st] * (comp == 0), (ys ** 2)[st] * (comp == 1)])}
+    pairs = np.array([(i, i + 2 * n_cam) for i in range(2 * n_cam * (n_st - 1))])
+    for amp in (30.0, 60.0):
+        r = rng.normal(0.0, 1.0, st.size) * (1.0 + 1.5 * comp) + amp * basis[:, 0] + 4.0 * (ys ** 2)[st] * (comp == 1)
+        out = {}
+        for refloor in (False, True):
+            ds = Dataset(residual=r, jac=jac, nominal_names=tuple(f"c{i}" for i in range(2 * n_cam)),
+                         sigma=np.ones(r.size), component=comp, group=st, neighbours=pairs, fold=st * 5 // n_st,
+                         empirical=field, shared_shift=False, refloor_after=refloor)
+            cand = Candidate("quad", "quadratic term", "test", ("a",), ("1",), basis, "1", np.ones(1), "-")
+            out[refloor] = analyse(ds, [cand], max_terms=1)
+        a, b = out[False], out[True]
+        assert a["chosen"] == b["chosen"] == ["quad"]
+        assert b["floor_after"].factor[0] < 0.2 * b["floor"].factor[0]          # the whitenings differ
+        assert [e["axis"] for e in a["unexplained"]] == [e["axis"] for e in b["unexplained"]]
+        assert np.allclose([e["delta_bic"] for e in a["unexplained"]], [e["delta_bic"] for e in b["unexplained"]],
+                           rtol=1e-9)
+        assert np.isclose(a["limits"]["quad"]["limit"], b["limits"]["quad"]["limit"], rtol=1e-12)
+        # the second component's structure is found at 30 sigma (under the 60 sigma term's floor it is not)
+        assert [e["axis"] for e in a["unexplained"]] == (["sensor field"] if amp == 30.0 else [])
+
+
 @pytest.mark.slow
 def test_realistic_tracker_errors_reported_and_the_lag_measured_on_the_moves(grid_session, grid_clean):
     # the grid session again, with realistic tracker errors at once: a 5 ppm length scale, 2 ppm encoder

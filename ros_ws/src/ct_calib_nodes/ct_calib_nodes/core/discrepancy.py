@@ -419,12 +419,14 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
         say(f"noise floor after the terms: factor {np.round(floor_after.factor, 3).tolist()} of stated sigma; "
             f"the joint fit and its uncertainties use it")
     cov = np.linalg.pinv(xw.T @ xw)
+    q_after, _ = _orth(xw)
+    za = _project_out(q_after, ctx_fit.z)
+    dof_a = max(ctx.n - q_after.shape[1], 1)
     birge = 1.0
     if floor_after is not None:
         # what the neighbour differences miss (structure correlated over a few stations) still shows in the
         # residuals' chi2 against the floor: the uncertainties take it as a factor (Birge ratio, never < 1)
-        za_ = _project_out(_orth(xw)[0], ctx_fit.z)
-        birge = float(np.sqrt(max(1.0, za_ @ za_ / max(ctx.n - np.linalg.matrix_rank(xw), 1))))
+        birge = float(np.sqrt(max(1.0, za @ za / dof_a)))
         cov = cov * birge ** 2
     p0 = ds.jac.shape[1]
     k = p0
@@ -439,10 +441,7 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
         strong = sorted({ds.nominal_names[i] for j in range(k, k + p) for i in range(p0) if abs(corr[i, j]) > 0.9})
         f["correlated_nominal"] = strong
         k += p
-    q_after, _ = _orth(xw)
-    za = _project_out(q_after, ctx_fit.z)
     r_after = ds.residual - xr @ beta
-    dof_a = max(ctx.n - q_after.shape[1], 1)
     cvchi1, cvrms1 = _cv(ctx_fit, [ctx_fit.wh(by_id[i].basis) for i in chosen], [by_id[i].basis for i in chosen])
     after = {"rms": ds.rms(r_after), "chi2_dof": float(za @ za / dof_a),
              "held_out_rms": cvrms1, "held_out_chi2_dof": cvchi1}
@@ -451,8 +450,9 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
         before["chi2_dof_final_floor"] = float(zp_f @ zp_f / dof0)
         after["floor"] = "after the terms"
         after["u_factor"] = birge
-    # ---- unexplained structure
-    remaining = [e for e in locate(ctx, q_after, ds.empirical) if e["delta_bic"] >= bic_threshold]
+    # ---- unexplained structure, under the floor of the detection steps (the model's basis whitened by it)
+    q_loc = q_after if floor_after is None else _orth(np.hstack([ctx.x0] + [cand_w[i] for i in chosen]))[0]
+    remaining = [e for e in locate(ctx, q_loc, ds.empirical) if e["delta_bic"] >= bic_threshold]
     # ---- detection limits (given the nominal model only)
     limits = {}
     for c in candidates:
@@ -475,8 +475,8 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
         limits[c.id] = {"limit": lim, "unit": c.magnitude_unit, "absorbed_fraction": float(absorbed),
                         "first_delta_bic": None if scores_first is None or c.id not in scores_first
                         else float(scores_first[c.id][0])}
-    return {"context": ctx, "floor": ctx.floor, "floor_after": floor_after, "located": located, "findings": findings, "chosen": chosen,
-            "beta": beta, "cov": cov, "before": before, "after": after, "unexplained": remaining,
+    return {"context": ctx, "floor": ctx.floor, "floor_after": floor_after, "located": located,
+            "findings": findings, "chosen": chosen, "beta": beta, "cov": cov, "before": before, "after": after, "unexplained": remaining,
             "limits": limits, "n": ctx.n, "implausible": implausible}
 
 
