@@ -407,14 +407,16 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
         say(f"found {best[3]}: delta BIC {best[0]:.1f}, {findings[-1]['significance_sigma']:.1f} sigma, "
             f"held-out chi2/n gain {cv_gain:.4f}" + (f"; degenerate with {degenerate}" if degenerate else ""))
     # ---- joint linear fit with the chosen terms (the adapter refits nonlinearly)
-    xw = np.hstack([ctx.x0] + [cand_w[i] for i in chosen])
-    xr = np.hstack([ds.jac] + [by_id[i].basis for i in chosen])
+    chosen_w, chosen_r = [cand_w[i] for i in chosen], [by_id[i].basis for i in chosen]
+    xw = np.hstack([ctx.x0] + chosen_w)
+    xr = np.hstack([ds.jac] + chosen_r)
     beta = _fit(ctx.z, xw)
     ctx_fit, floor_after = ctx, None
     if chosen and ds.refloor_after:
         floor_after = noise_floor(replace(ds, residual=ds.residual - xr @ beta))
         ctx_fit = make_context(ds, floor_after)
-        xw = np.hstack([ctx_fit.x0] + [ctx_fit.wh(by_id[i].basis) for i in chosen])
+        chosen_w = [ctx_fit.wh(b) for b in chosen_r]
+        xw = np.hstack([ctx_fit.x0] + chosen_w)
         beta = _fit(ctx_fit.z, xw)
         say(f"noise floor after the terms: factor {np.round(floor_after.factor, 3).tolist()} of stated sigma; "
             f"the joint fit and its uncertainties use it")
@@ -442,7 +444,7 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
         f["correlated_nominal"] = strong
         k += p
     r_after = ds.residual - xr @ beta
-    cvchi1, cvrms1 = _cv(ctx_fit, [ctx_fit.wh(by_id[i].basis) for i in chosen], [by_id[i].basis for i in chosen])
+    cvchi1, cvrms1 = _cv(ctx_fit, chosen_w, chosen_r)
     after = {"rms": ds.rms(r_after), "chi2_dof": float(za @ za / dof_a),
              "held_out_rms": cvrms1, "held_out_chi2_dof": cvchi1}
     if floor_after is not None:                 # before, against the same (final) floor
@@ -476,8 +478,8 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
                         "first_delta_bic": None if scores_first is None or c.id not in scores_first
                         else float(scores_first[c.id][0])}
     return {"context": ctx, "floor": ctx.floor, "floor_after": floor_after, "located": located,
-            "findings": findings, "chosen": chosen, "beta": beta, "cov": cov, "before": before, "after": after, "unexplained": remaining,
-            "limits": limits, "n": ctx.n, "implausible": implausible}
+            "findings": findings, "chosen": chosen, "beta": beta, "cov": cov, "before": before, "after": after,
+            "unexplained": remaining, "limits": limits, "n": ctx.n, "implausible": implausible}
 
 
 def _fmt(v, unit):
