@@ -1,7 +1,7 @@
 """Validation of the CT discrepancy engine on rendered recordings with concealed physics (issue 11).
 
     OPENBLAS_NUM_THREADS=1 .venv/bin/python tests/benchmarks/validate_ct_discrepancy.py [--seeds 3] [--clean 50]
-        [--effects focal_spot_drift,detector_bow,...] [--scale 1.0] [--views 72]
+        [--effects focal_spot_drift,detector_bow,...] [--scale 1.0] [--views 72] [--acquisition reveal]
 
 For every effect in tests/ct_discrepancy/campaign.py (magnitudes as quoted there: focal spot drifting 30 um,
 detector bowed 0.5 px at the corner, ...) and seed: a random instrument and renderer physics, 72 rendered
@@ -9,7 +9,9 @@ projections through detection + identity + static solve, then ct_discrepancy.run
 effect: detection rate, top-1 naming rate (and how often the true term was named only as degenerate with the
 top one), estimated / true magnitude, held-out residual before / after against the noise floor, and the
 largest bias of an instrument parameter (z_R .. eta) in its standard deviations before and after the refit.
-Clean controls give the false-alarm rate. Progress goes to stderr; the last line of stdout is one JSON object.
+Clean controls give the false-alarm rate. ``--acquisition reveal`` runs everything on the acquisition that
+separates the degenerate groups (campaign.ACQUISITIONS: magnification 4.4-5.8, the object raised 20 mm off the
+principal ray, two turns). Progress goes to stderr; the last line of stdout is one JSON object.
 """
 
 from __future__ import annotations
@@ -26,18 +28,18 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1] / "ct_discrep
 
 import numpy as np  # noqa: E402
 
-from campaign import DETECTORS, EFFECTS, analyse_campaign, analyse_truth_campaign  # noqa: E402
+from campaign import ACQUISITIONS, DETECTORS, EFFECTS, analyse_campaign, analyse_truth_campaign  # noqa: E402
 
 INSTR = slice(0, 7)
 
 
-def one(seed, effect, scale, views, mode, det=None, image_effect=None, image_pairs=0):
+def one(seed, effect, scale, views, mode, det=None, image_effect=None, image_pairs=0, acquisition="standard"):
     if mode == "rendered":
         out, truth = analyse_campaign(seed, effect, scale, n_views=views, det=det, image_effect=image_effect,
-                                      image_pairs=image_pairs)
+                                      image_pairs=image_pairs, acquisition=acquisition)
         st = out["_static"]
     else:
-        out, truth, st = analyse_truth_campaign(seed, effect, scale, n_views=views)
+        out, truth, st = analyse_truth_campaign(seed, effect, scale, n_views=views, acquisition=acquisition)
         out["_timing"] = {"render_detect_s": 0.0, "static_s": 0.0, "engine_s": 0.0}
     w = truth["w"]
     xb, sb = np.asarray(out["calibration_before"]["x"]), np.asarray(out["calibration_before"]["std"])
@@ -83,7 +85,11 @@ def main():
     ap.add_argument("--clean", type=int, default=50)
     ap.add_argument("--effects", default=",".join(EFFECTS))
     ap.add_argument("--scale", type=float, default=1.0)
-    ap.add_argument("--views", type=int, default=72)
+    ap.add_argument("--views", type=int, default=72, help="projections per turn")
+    ap.add_argument("--acquisition", choices=tuple(ACQUISITIONS), default="standard",
+                    help="standard: magnification 2.3-3.5, object on the principal ray, one turn; reveal: "
+                         "magnification 4.4-5.8, object raised 20 mm, two turns (separates the degenerate groups); "
+                         "magnified, raised, two_turns: each part of reveal alone")
     ap.add_argument("--records", help="write every campaign's record to this JSONL file")
     ap.add_argument("--mode", choices=("rendered", "truth"), default="rendered",
                     help="rendered: images through detection (slow); truth: the renderer's exact centres + noise")
@@ -92,6 +98,7 @@ def main():
                          "comma-separated from 1024,768,512 (renderer settings varied; 512 renders 4x faster)")
     ap.add_argument("--clean-only", action="store_true", help="only the clean controls")
     ap.add_argument("--clean-start", type=int, default=0, help="first clean seed offset (split a campaign)")
+    ap.add_argument("--seed-start", type=int, default=0, help="first effect seed offset (effect seeds 1000 + offset ..)")
     ap.add_argument("--image-pairs", type=int, default=0,
                     help="rendered mode: also run the image-level checks on this many projection pairs")
     ap.add_argument("--image-effects", default="",
@@ -104,7 +111,8 @@ def main():
     t0 = time.perf_counter()
     recs = []
     sink = open(args.records, "a") if args.records else None
-    jobs = [] if args.clean_only else [(1000 + s, e) for e in effects for s in range(args.seeds)]
+    jobs = [] if args.clean_only else [(1000 + s, e) for e in effects
+                                       for s in range(args.seed_start, args.seed_start + args.seeds)]
     jobs += [(5000 + s, "clean") for s in range(args.clean_start, args.clean_start + args.clean)]
     img_eff = [(e.split(":")[0], float(e.split(":")[1])) for e in args.image_effects.split(",") if e]
     jobs += [(7000 + s, f"image:{n}:{a}") for n, a in img_eff for s in range(args.seeds)]
@@ -116,11 +124,11 @@ def main():
         if eff.startswith("image:"):
             _, name, amp = eff.split(":")
             r = one(seed, "clean", 1.0, args.views, args.mode, clean_dets[seed % len(clean_dets)],
-                    image_effect=(name, float(amp)), image_pairs=max(args.image_pairs, 1))
+                    image_effect=(name, float(amp)), image_pairs=max(args.image_pairs, 1), acquisition=args.acquisition)
             r["effect"] = eff
         else:
             r = one(seed, eff, args.scale if eff != "clean" else 1.0, args.views, args.mode, det,
-                    image_pairs=args.image_pairs)
+                    image_pairs=args.image_pairs, acquisition=args.acquisition)
         if args.mode == "truth":
             r["timing"]["engine_s"] = _t.perf_counter() - t_a
         recs.append(r)
@@ -173,7 +181,8 @@ def main():
             "u_percent": None if name is None else [r["image"]["terms"][name]["u"] for r in rs],
             "feature_level_adequate": float(np.mean([r["adequate"] for r in rs])),
             "named_terms": sorted({t for r in rs for t in r["image"]["named"]})}
-    summary = {"benchmark": "validate_ct_discrepancy", "mode": args.mode, "views": args.views, "scale": args.scale, "effects": table,
+    summary = {"benchmark": "validate_ct_discrepancy", "mode": args.mode, "acquisition": args.acquisition,
+               "views_per_turn": args.views, "scale": args.scale, "effects": table,
                "image_level": image_table,
                "clean_by_detector": {str(d): {"n": sum(r["physics"].get("detector_px") == d for r in clean),
                                               "false_alarms": sum((not r["adequate"]) and r["physics"].get("detector_px") == d

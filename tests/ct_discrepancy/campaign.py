@@ -4,6 +4,11 @@ Each campaign: a random misaligned instrument (rendered_mc.draw_instrument), ran
 counts, support tube), helix49, ``n_views`` projections over one turn at ``frame_dt_s`` per frame, frames
 through the same detection + identity + static solve as the offline tool; the effect is a render_effects /
 RenderSettings switch the solver and the engine are never told about.
+
+Two acquisitions of the same reference object (``acquisition=``, see ACQUISITIONS): ``standard`` (magnification
+2.3-3.5, the object centred on the principal ray, one turn) and ``reveal`` (magnification 4.4-5.8, the object raised
+20 mm off the principal ray, two turns of 72 projections), which separates the engine's degenerate groups
+(ct_discrepancy.md, "An acquisition that separates the degenerate groups").
 """
 
 from __future__ import annotations
@@ -29,6 +34,28 @@ ARCSEC = DEG / 3600.0
 SDD = 1.04821
 DET = DetectorSpec(1024, 1024, 0.0004)
 STAMP0_NS = 1_700_000_000_000_000_000
+
+
+# acquisitions: the source-to-rotary-axis range drawn (magnification SDD / SRD), the object raised along the rotary
+# axis off the principal ray (its pose y_P), the number of turns (each of n_views projections)
+ACQUISITIONS = {
+    "standard": {"srd_range": (0.30, 0.45), "raise_m": 0.0, "turns": 1},
+    # separates what `standard` leaves as degenerate groups: the spread of magnification over the object's depth
+    # (stage vs focal-spot vs detector drift), an expansion about the object's centre instead of the principal
+    # point (expansion vs axial drifts), M times the runout on the detector, twice the projections
+    "reveal": {"srd_range": (0.18, 0.24), "raise_m": 0.020, "turns": 2},
+    # each part of `reveal` alone (the raised object at a low magnification, so that its shadows stay on the panel)
+    "magnified": {"srd_range": (0.18, 0.24), "raise_m": 0.0, "turns": 1},
+    "raised": {"srd_range": (0.40, 0.45), "raise_m": 0.020, "turns": 1},
+    "two_turns": {"srd_range": (0.30, 0.45), "raise_m": 0.0, "turns": 2},
+}
+
+
+def _acquisition(name):
+    try:
+        return ACQUISITIONS[name]
+    except KeyError:
+        raise ValueError(f"unknown acquisition {name!r}; known: {', '.join(ACQUISITIONS)}") from None
 
 
 def draw_instrument(rng, srd_range=(0.30, 0.45)):
@@ -107,7 +134,8 @@ def _image_effect(name, amp, img, prev, i0, tau):
 
 
 def render_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_views: int = 72,
-                    frame_dt_s: float = 1.0, det: DetectorSpec | None = None, image_effect=None, keep_frames=()):
+                    frame_dt_s: float = 1.0, det: DetectorSpec | None = None, image_effect=None, keep_frames=(),
+                    acquisition: str = "standard"):
     """Returns (obs, truth dict) for the first (only) stage position (``det``: detector format, default DET).
 
     ``image_effect`` (name, amplitude) from IMAGE_EFFECTS: hidden image-level physics on the counts (the
@@ -117,11 +145,15 @@ def render_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_view
 
     rng = np.random.default_rng(seed)
     det = det or DET
-    w, srd = draw_instrument(rng)
+    acq = _acquisition(acquisition)
+    w, srd = draw_instrument(rng, acq["srd_range"])
     phys = {"blur_sigma_px": float(rng.uniform(0.4, 1.0)), "flat_field_counts": float(rng.uniform(2e4, 6e4)),
-            "tube": bool(rng.random() < 0.5), "detector_px": det.cols}
+            "tube": bool(rng.random() < 0.5), "detector_px": det.cols, "acquisition": acquisition}
+    n_views = n_views * acq["turns"]
     duration = (n_views - 1) * frame_dt_s
     kw, term, mag = effect_settings(effect, scale, duration, rng)
+    w = w.copy()
+    w[8] += acq["raise_m"]                                 # y_P: drawn first, so the draws match `standard`'s
     ref = helix49()
     obj = dataclasses.replace(ref, tube=ref.tube if phys["tube"] else None)
     settings = RenderSettings(flat_field_counts=phys["flat_field_counts"], blur_sigma_px=phys["blur_sigma_px"], **kw)
@@ -130,7 +162,7 @@ def render_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_view
 
     def views():
         prev = None
-        for j, a in enumerate(np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)):
+        for j, a in enumerate(np.linspace(0.0, 2 * np.pi * acq["turns"], n_views, endpoint=False)):
             t = j * frame_dt_s - duration / 2               # renderer time 0 at mid-scan (see effect_settings)
             image = render_projection(w, np.zeros(6), a, obj, det, settings, rng, time_s=t).image
             if image_effect is not None:
@@ -151,15 +183,16 @@ def render_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_view
 
 
 def analyse_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_views: int = 72, frame_dt_s: float = 1.0,
-                     det: DetectorSpec | None = None, image_effect=None, image_pairs: int = 0):
+                     det: DetectorSpec | None = None, image_effect=None, image_pairs: int = 0,
+                     acquisition: str = "standard"):
     """Rendered campaign -> detection -> static solve -> ct_discrepancy.run (+ image level with image_pairs > 0,
     on the reference object WITHOUT its support tube: what reference_object.yaml describes)."""
     from ct_calib_nodes.core import ct_image_discrepancy as imd  # noqa: PLC0415
 
-    pairs = imd.pick_pairs(n_views, image_pairs) if image_pairs > 0 else []
+    pairs = imd.pick_pairs(n_views * _acquisition(acquisition)["turns"], image_pairs) if image_pairs > 0 else []
     t0 = time.perf_counter()
     obs, truth = render_campaign(seed, effect, scale, n_views, frame_dt_s, det, image_effect,
-                                 keep_frames={k for p in pairs for k in p})
+                                 keep_frames={k for p in pairs for k in p}, acquisition=acquisition)
     det = truth["det"]
     t1 = time.perf_counter()
     st = solve_static(obs, truth["ref"].centres_of_m, det, truth["srd"], truth["sdd"])
@@ -197,30 +230,39 @@ def noisy_centres(w, motion, alphas, times_s, ref, settings, rng, sigma, tau, st
                                          sigma_px_per_view=sig, minor_axis_px_per_view=minor)
 
 
-def truth_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_views: int = 72, frame_dt_s: float = 1.0):
+def truth_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_views: int = 72, frame_dt_s: float = 1.0,
+                   acquisition: str = "standard"):
     """Feature-level recording: the renderer's exact truth (render.frame_truth, hidden physics applied, no image)
     plus detection-like noise of a random size, a random per-projection shared shift and a misstated sigma.
 
-    Fast (milliseconds per view); the image-level path is :func:`render_campaign`. Returns (obs, truth).
+    ``n_views`` projections per turn (ACQUISITIONS[acquisition]["turns"] turns); a time effect has its magnitude
+    over the whole scan. Fast (milliseconds per view); the image-level path is :func:`render_campaign`.
+    Returns (obs, truth).
     """
 
     rng = np.random.default_rng(seed)
-    w, srd = draw_instrument(rng)
+    acq = _acquisition(acquisition)
+    w, srd = draw_instrument(rng, acq["srd_range"])
+    n_views = n_views * acq["turns"]
     duration = (n_views - 1) * frame_dt_s
     kw, term, mag = effect_settings(effect, scale, duration, rng)
     sigma = float(rng.uniform(0.005, 0.03))
     tau = float(rng.choice([0.0, 0.5]) * sigma)
     stated = sigma * float(rng.uniform(0.6, 1.6))
+    w = w.copy()
+    w[8] += acq["raise_m"]                                 # y_P, after the draws (they match `standard`'s)
     ref = helix49()
     settings = RenderSettings(**kw)
-    obs = noisy_centres(w, np.zeros(6), np.linspace(0.0, 2 * np.pi, n_views, endpoint=False),
+    obs = noisy_centres(w, np.zeros(6), np.linspace(0.0, 2 * np.pi * acq["turns"], n_views, endpoint=False),
                         np.arange(n_views) * frame_dt_s - duration / 2, ref, settings, rng, sigma, tau, stated)
     return obs, {"w": w, "srd": srd, "sdd": SDD, "effect": effect, "term": term, "magnitude": mag,
-                 "physics": {"sigma_px": sigma, "shared_px": tau, "stated_px": stated}, "ref": ref}
+                 "physics": {"sigma_px": sigma, "shared_px": tau, "stated_px": stated, "acquisition": acquisition},
+                 "ref": ref}
 
 
-def analyse_truth_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_views: int = 72):
-    obs, truth = truth_campaign(seed, effect, scale, n_views)
+def analyse_truth_campaign(seed: int, effect: str = "clean", scale: float = 1.0, n_views: int = 72,
+                           acquisition: str = "standard"):
+    obs, truth = truth_campaign(seed, effect, scale, n_views, acquisition=acquisition)
     st = solve_static(obs, truth["ref"].centres_of_m, DET, truth["srd"], truth["sdd"])
     return ct_discrepancy.run(obs, st, DET), truth, st
 
@@ -294,7 +336,7 @@ def render_multi_campaign(seed: int, n_positions: int = 3, n_views: int = 36, fr
             m[2] += k * step_m
             motions.append(m)
             t0 = k * (scan + gap_s) - 0.5 * campaign
-            for j, a in enumerate(np.linspace(0.0, 2 * np.pi, n_views, endpoint=False)):
+            for j, a in enumerate(np.linspace(0.0, 2 * np.pi * acq["turns"], n_views, endpoint=False)):
                 t = t0 + j * frame_dt_s
                 frame = render_projection(w, m, a, obj, det, settings, rng, time_s=t)
                 yield STAMP0_NS + int(round(t * 1e9)), frame.image, a, srd + k * step_m

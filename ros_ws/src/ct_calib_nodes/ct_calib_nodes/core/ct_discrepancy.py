@@ -156,7 +156,8 @@ CATALOGUE = (
            "the electron beam's spot on the target wanders as the tube heats, moving every shadow by (1 - M) times "
            "its displacement, in proportion to each sphere's magnification", "source",
            ("dSx_scan", "dSy_scan"), ("m", "m"), (2e-6, 2e-6), "um", 1e6,
-           "a longer scan or repeated projections at the start and end (a drift shows as a difference)",
+           "a longer scan or repeated projections at the start and end (a drift shows as a difference); against a "
+           "stage or detector drift, a higher magnification (object near the source) with more projections",
            _t_focal_lateral, True),
     CtTerm("focal_spot_drift_axial", "focal-spot drift along the beam",
            "the spot moves towards or away from the detector during the scan, changing the magnification with time",
@@ -172,17 +173,20 @@ CATALOGUE = (
            "the rotary stage and object creep (thermal drift of the axes), moving the object linearly in time",
            "object", ("dX_scan", "dY_scan"), ("m", "m"), (2e-6, 2e-6), "um", 1e6,
            "a longer scan or a repeated first projection at the end; a shift of the source instead moves each shadow "
-           "by (1 - M) rather than M times, so spheres spread in depth separate the two", _t_stage_drift, True, 500.0),
+           "by (1 - M) rather than M times, so spheres spread in depth separate the two: a higher magnification "
+           "(object near the source) with more projections", _t_stage_drift, True, 500.0),
     CtTerm("stage_drift_axial", "stage drift along the beam during the scan",
            "the object creeps towards or away from the source, changing the magnification with time",
            "object", ("dZ_scan",), ("m",), (5e-6,), "um", 1e6,
-           "a longer scan; a temperature log (separates it from thermal expansion of the object)",
+           "a longer scan; a temperature log, or the object raised off the principal ray (an expansion scales about "
+           "the object's centre, an axial drift about the principal point), separates it from thermal expansion",
            _t_stage_drift_axial, True, 2000.0),
     CtTerm("object_thermal_expansion", "thermal expansion of the object during the scan",
            "the reference object warms or cools during the scan, its sphere distances growing in time (a constant "
            "scale is degenerate with z_R and needs a temperature reading)", "object",
            ("expansion_scan",), ("1",), (2e-6,), "ppm", 1e6,
-           "a scan during a temperature change, a temperature log of the object", _t_expansion, True),
+           "a scan during a temperature change, a temperature log of the object; the object raised off the principal "
+           "ray (20 mm is enough) separates it from an axial drift of the source or stage", _t_expansion, True),
     CtTerm("encoder_eccentricity", "rotary encoder eccentricity (once per revolution)",
            "the encoder disc is off-centre on the spindle, so the reported angle is off by a sine of the angle",
            "angle", ("ecc_a", "ecc_b"), ("rad", "rad"), (5e-6, 5e-6), "arcsec", 1.0 / ARCSEC,
@@ -194,7 +198,8 @@ CATALOGUE = (
     CtTerm("rotary_radial_runout", "radial error motion of the rotary axis",
            "the spindle moves across the beam once per revolution (bearing runout fixed in space)",
            "object", ("runout_c", "runout_s"), ("m", "m"), (1e-6, 1e-6), "um", 1e6,
-           "a full revolution; a sphere near the axis", _t_radial_runout),
+           "a full revolution at a higher magnification (the shadows move by M times the runout); a sphere near "
+           "the axis", _t_radial_runout),
     CtTerm("rotary_axial_runout", "axial error motion of the rotary axis",
            "the table lifts and sinks once per revolution (axial runout)", "object",
            ("axial_c", "axial_s"), ("m", "m"), (1e-6, 1e-6), "um", 1e6,
