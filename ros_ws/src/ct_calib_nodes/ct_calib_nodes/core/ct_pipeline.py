@@ -515,6 +515,7 @@ class FrameProcessor:
         self._init_srd = None
         self._diagnosed = False
         self._pending = []          # (stamp, alpha, srd, detections) of this position before initialisation
+        self._set_aside = []        # the same, left out of a failed initialisation (assigned once one succeeds)
         self.srd_current = None
         self.n_frames = 0
         self.init_messages = []     # (srd, message) of every identity initialisation
@@ -576,10 +577,13 @@ class FrameProcessor:
     def flush(self) -> list:
         """Release the frames still buffered (end of a position or of the stream): identity is
         initialised from however many there are, or they come out rejected."""
-        return self._try_initialise(final=True) if self._pending else []
+        return self._try_initialise(final=True) if (self._pending or self._set_aside) else []
 
     def _try_initialise(self, final: bool) -> list:
-        p = self._pending
+        """Initialise identity from the pending frames. On failure (not final) the oldest is set aside and
+        the next frame tried with the rest; the frames set aside are assigned, in recording order, once an
+        initialisation succeeds, or come out rejected with the reason at the end: no frame is dropped."""
+        p = self._pending if self._pending else self._set_aside[-self.init_frames:]
         centres, alphas, srd = [f[3].centre_px for f in p], [f[1] for f in p], p[0][2]
         init = None
         if self.track and self._track_from is not None:
@@ -593,10 +597,11 @@ class FrameProcessor:
         if init.success:
             self._init_srd = srd
         if not init.success and not final:
-            p.pop(0)                # try again with a newer set of frames
+            self._set_aside.append(self._pending.pop(0))    # try again with a newer set of frames
             return []
-        out = [self._assign(*f) for f in p]   # not initialised -> every detection rejected with a reason
-        self._pending = []
+        # not initialised -> every detection rejected with a reason
+        out = [self._assign(*f) for f in self._set_aside + self._pending]
+        self._pending, self._set_aside = [], []
         return out
 
     def _assign(self, stamp, alpha, srd, det) -> FrameResult:
