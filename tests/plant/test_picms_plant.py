@@ -146,6 +146,12 @@ def test_node_republishes_latest_valid_at_start_and_failures_never_replace_it(ca
     assert m.status.code == SolveStatus.SUCCESS
     assert np.allclose(m.pixels, [v for c in sorted(res.pixels) for v in res.pixels[c]], atol=1e-12)
     # 2. a run that fails (the stage runs, but no camera publishes CameraInfo): returned, not published
+    from sensor_msgs.msg import JointState
+
+    js = []
+    js_sub = ros_node.create_subscription(JointState, "/picms/stage/joint_states", js.append, 10)
+    assert ros_node.spin_until(lambda: js, timeout=20), stage.log()      # the stage is up and discovered
+    ros_node.destroy_subscription(js_sub)
     cli = ros_node.create_client(RunPicmsCalibration, "/picms/run_calibration")
     assert ros_node.spin_until(cli.service_is_ready, timeout=20), cal.log()
     fut = cli.call_async(RunPicmsCalibration.Request(write_file=False))

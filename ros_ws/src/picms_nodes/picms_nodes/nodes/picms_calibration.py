@@ -237,17 +237,20 @@ class PicmsCalibrationNode(Node):
             t_wait = time.monotonic() + float(self.p["info_timeout_s"])
             while time.monotonic() < t_wait and (not self.js_t or any(c not in self.info for c in cams)):
                 time.sleep(0.1)
-            need = int(self.p["command_subscribers"])
-            while time.monotonic() < t_wait and self.cmd.get_subscription_count() < need:
-                time.sleep(0.1)
-            if self.cmd.get_subscription_count() < need:
-                raise CalibrationError(f"{self.cmd.get_subscription_count()} subscriber(s) of the stage command topic, "
-                                       f"{need} expected (command_subscribers) within {self.p['info_timeout_s']} s")
+            # what is missing from the cell first (a camera or the stage not running), then whether the stage
+            # hears its commands (discovery of its subscription can lag its joint_states under load)
             missing = [c for c in cams if c not in self.info]
             if not self.js_t:
                 raise CalibrationError("no /picms/stage/joint_states: is the stage running?")
             if missing:
                 raise CalibrationError(f"CameraInfo missing for {missing}: intrinsic calibration K, D required")
+            need = int(self.p["command_subscribers"])
+            t_wait = time.monotonic() + float(self.p["info_timeout_s"])
+            while time.monotonic() < t_wait and self.cmd.get_subscription_count() < need:
+                time.sleep(0.1)
+            if self.cmd.get_subscription_count() < need:
+                raise CalibrationError(f"{self.cmd.get_subscription_count()} subscriber(s) of the stage command topic, "
+                                       f"{need} expected (command_subscribers) within {self.p['info_timeout_s']} s")
             ref = np.array(self.p["reference"], float)
             sxy, sz = float(self.p["step_xy_m"]), float(self.p["step_z_m"])
             pattern = appendix_a_pattern(sxy, sz) if self.p["pattern"] == "appendix_a" else \
