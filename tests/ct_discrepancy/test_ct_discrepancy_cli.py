@@ -87,11 +87,9 @@ def test_cli_on_a_two_turn_reveal_recording(tmp_path):
     4.4-5.8, the object raised 20 mm off the principal ray, two turns of 72 projections), rendered with a hidden
     8 um stage drift and written by other software with the rotary angle wrapped to [0, 2 pi) as a driver may
     publish it: the offline command replays both turns as one scan and names the drift."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-    from rosbags.typesys import Stores, get_typestore
-
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
     from campaign import ACQUISITIONS, STAMP0_NS, draw_instrument, effect_settings  # noqa: PLC0415
+    from ct_foreign_writer import write_ct_recording  # noqa: PLC0415
 
     acq = ACQUISITIONS["reveal"]
     rng = np.random.default_rng(4310)
@@ -101,24 +99,15 @@ def test_cli_on_a_two_turn_reveal_recording(tmp_path):
     w = w.copy()
     w[8] += acq["raise_m"]
     settings = RenderSettings(**kw)
-    ts = get_typestore(Stores.ROS2_JAZZY)
-    Image, JointState = ts.types["sensor_msgs/msg/Image"], ts.types["sensor_msgs/msg/JointState"]
-    Header, Time = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
-    bag = tmp_path / "reveal"
-    with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as wr:
-        c_js = wr.add_connection("/ct/stage/joint_states", "sensor_msgs/msg/JointState", typestore=ts)
-        c_img = wr.add_connection("/ct/detector/image", "sensor_msgs/msg/Image", typestore=ts)
+
+    def frames():
         for j, a in enumerate(np.linspace(0, 2 * np.pi * acq["turns"], n, endpoint=False)):
             t_s = j - (n - 1) / 2                         # 1 s per frame, time 0 at mid-scan (effect_settings)
             img = render_projection(w, np.zeros(6), a, helix49(), DET, settings, rng, time_s=t_s).image
-            t = STAMP0_NS + int(round(t_s * 1e9))
-            stamp = Time(sec=t // 10**9, nanosec=t % 10**9)
-            im = Image(header=Header(stamp=stamp, frame_id="det"), height=DET.rows, width=DET.cols, encoding="mono16",
-                       is_bigendian=0, step=2 * DET.cols, data=np.asarray(img, "<u2").view(np.uint8).ravel())
-            js = JointState(header=Header(stamp=stamp, frame_id=""), name=["rotary", "magnification"],
-                            position=np.array([a % (2 * np.pi), srd]), velocity=np.zeros(0), effort=np.zeros(0))
-            wr.write(c_js, t, ts.serialize_cdr(js, "sensor_msgs/msg/JointState"))
-            wr.write(c_img, t, ts.serialize_cdr(im, "sensor_msgs/msg/Image"))
+            yield STAMP0_NS + int(round(t_s * 1e9)), np.asarray(img, np.uint16), a % (2 * np.pi), srd
+
+    bag = tmp_path / "reveal"
+    assert write_ct_recording(bag, frames()) == n
     out = tmp_path / "disc"
     res = _run(str(bag), "--out", str(out), "--image-pairs", "0", "--workers", "2")
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]

@@ -411,6 +411,7 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
     xw = np.hstack([ctx.x0] + chosen_w)
     xr = np.hstack([ds.jac] + chosen_r)
     beta = _fit(ctx.z, xw)
+    xw_detect = xw                              # the model whitened under the floor that named the terms
     ctx_fit, floor_after = ctx, None
     if chosen and ds.refloor_after:
         floor_after = noise_floor(replace(ds, residual=ds.residual - xr @ beta))
@@ -453,7 +454,7 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
         after["floor"] = "after the terms"
         after["u_factor"] = birge
     # ---- unexplained structure, under the floor of the detection steps (the model's basis whitened by it)
-    q_loc = q_after if floor_after is None else _orth(np.hstack([ctx.x0] + [cand_w[i] for i in chosen]))[0]
+    q_loc = q_after if floor_after is None else _orth(xw_detect)[0]
     remaining = [e for e in locate(ctx, q_loc, ds.empirical) if e["delta_bic"] >= bic_threshold]
     # ---- detection limits (given the nominal model only)
     limits = {}
