@@ -15,8 +15,12 @@ still shows there) and `short`
 (a 3 x 3 x 2 grid, 19 stations, with a 4 x faster stage: a 3 x shorter session, too short for the drift)
 and `dense` (a 6 x 6 x 3 grid over the same travel, 109 stations, a ~3.5 min session: about 0.6 x the
 grid's limit for the stage terms, which the grid's 60 ppm draws straddle; rows `stage_lead_dense`,
-`stage_default_dense` and their clean control `clean_dense`). Effects
-(hidden from the engine; realistic magnitudes):
+`stage_default_dense` and their clean control `clean_dense`), and `reveal`, the stage terms' revealing
+acquisition: the 6 x 6 x 3 grid over +-8 / +-5 mm (the widest travel that keeps every disc inside every
+field on these cells) with four frames per station, a ~5 min session (rows `stage_lead_reveal`, a lead
+error of a fixed size, and `tracker_scale_gross_reveal`; clean control `clean_reveal`; run them on more
+seeds with `--first 1006 --clean-seeds 6 --effect-seeds 6 --only clean_reveal stage_lead_reveal
+tracker_scale_gross_reveal`). Effects (hidden from the engine; realistic magnitudes):
 
 - lens_radial_k1: lenses with k1 ~ -0.3, CameraInfo D = 0;
 - pixel_aspect_error: CameraInfo fy off by 0.8-1.2e-3 relative, either sign, per camera;
@@ -25,8 +29,10 @@ grid's limit for the stage terms, which the grid's 60 ppm draws straddle; rows `
   the differential part is what the cameras see (a common scale is absorbed by the calibration). On
   `grid` about half of these draws fall below the term's limit (~25-40 ppm), so the row
   `stage_lead_coarse` draws 150 ppm sd (rolled screws, C7-C10) on the same acquisition to show it where
-  it is visible; a wider travel does not help (+-12 mm: the disc leaves the field at the corners and
-  the limit rose to 39-57 ppm on two seeds);
+  it is visible (+-12 mm of travel takes the disc out of the field at the corners; `reveal` uses +-8 mm);
+- stage_lead_reveal: lead errors whose differential part has a fixed rms of 40 ppm over the axes, in a
+  random direction (C5-C7 screws, uncompensated), plus a common part of 30 ppm sd: a size the revealing
+  acquisition resolves, where the random draws above straddle the limits;
 - stage default error motions (stage_errors.StageErrorSpec defaults: scale, straightness,
   pitch/yaw/roll through the Abbe offset): what the cameras see is the linear part, an effective
   differential axis scale; the truth compared is that effective scale;
@@ -42,7 +48,8 @@ per station after averaging, over a 12 mm travel):
   cell's travel cannot reveal it (limit ~400 ppm): the engine must report the limit and name nothing.
   `tracker_scale_gross` draws 500-900 ppm, beyond any working tracker (air left uncompensated is
   270 ppm) but below the catalogue's plausibility bound (1000 ppm), only to show the term named and
-  sized where it is visible;
+  sized where it is visible; `tracker_scale_gross_reveal` the same draws on the `reveal` recording
+  (more stations, more travel: about a third of the grid's limit);
 - tracker_angular_encoder: 2 ppm sd of the angle per encoder (the tracker's angular MPE, ~3 urad, over
   a half turn); not visible over the cell's few mrad;
 - smr_centring: 5 um sd per axis (1.5" SMR centring grades +-2.5 to +-12.7 um): absorbed by X*; the
@@ -82,7 +89,27 @@ ACQ = {
     "small": dict(pattern=pd.grid_pattern(half_xy_m=0.001, half_z_m=0.0007)),
     "short": dict(pattern=pd.grid_pattern(n_xy=3), fast=True),
     "dense": dict(pattern=pd.grid_pattern(n_xy=6, n_z=3)),
+    # the stage terms' revealing acquisition: the dense grid over the widest travel that keeps every disc in
+    # every field on every cell (+-8 / +-5 mm: 75 px of margin at the worst corner; +-9 / +-6 mm clips), and four
+    # frames per station (single frames carry ~0.4 urad of image noise each; the station's fixed detection
+    # pattern, ~0.1-0.4 urad, does not average away)
+    "reveal": dict(pattern=pd.grid_pattern(n_xy=6, n_z=3, half_xy_m=0.008, half_z_m=0.005),
+                   frames_per_station=4, dwell_s=2.0),
 }
+LEAD_FIXED_PPM = 40.0
+
+
+def fixed_lead(seed):
+    """Lead errors of a fixed size in a random direction: the differential part (what the cameras can see)
+    has an rms of LEAD_FIXED_PPM over the three axes (ball screws of grades C5-C7, uncompensated); a common
+    part (absorbed by the calibration) of 30 ppm sd is added."""
+    r = np.random.default_rng([seed, 17])
+    d = r.normal(0.0, 1.0, 3)
+    d -= d.mean()
+    d *= LEAD_FIXED_PPM / np.sqrt(np.mean(d * d))
+    s = d + r.normal(0.0, 30.0)
+    return dict(stage_error_motions=True, stage_error_spec=StageErrorSpec(
+        scale_ppm_sd=0.0, straightness_m_sd=0.0, angular_rad_sd=0.0, scale_ppm=tuple(float(v) for v in s)))
 # rendering jobs: name -> (acquisition, physics overrides, CameraInfo variants); effect seeds only
 # except 'clean' which every seed renders
 JOBS = {
@@ -97,6 +124,8 @@ JOBS = {
     "stage_default_dense": ("dense", dict(stage_error_motions=True), ("true",)),
     "drift": ("grid", dict(camera_tilt_drift_rad_per_s=DRIFT_RAD_PER_S), ("true",)),
     "drift_fast": ("short", dict(camera_tilt_drift_rad_per_s=DRIFT_RAD_PER_S), ("true",)),
+    "clean_reveal": ("reveal", {}, ("true",)),
+    "stage_lead_reveal": ("reveal", fixed_lead, ("true",)),
 }
 
 
@@ -113,7 +142,10 @@ TRACKER_JOBS = {
     "smr_centring": lambda r: dict(smr_centring_m=tuple(float(v) for v in r.normal(0.0, 5e-6, 3))),
     "tracker_lag": lambda r: dict(tracker_lag_s=_sign(r) * float(r.uniform(0.010, 0.040))),
     "tracker_lag_settled": lambda r: dict(tracker_lag_s=_sign(r) * float(r.uniform(0.010, 0.040))),
+    "tracker_scale_gross_reveal": lambda r: dict(tracker_scale_ppm=_sign(r) * float(r.uniform(500.0, 900.0))),
 }
+# the clean recording a tracker effect is derived from (default: the seed's clean grid)
+TRACKER_BASE = {"tracker_scale_gross_reveal": "clean_reveal"}
 # rows whose tracker is read only at the settled stations (a tracker triggered per station): the moves that
 # reveal a clock lag carry no readings
 SETTLED_ONLY = {"tracker_lag_settled"}
@@ -152,6 +184,7 @@ def render_job(args):
     if path is not None and path.exists():
         return pickle.loads(path.read_bytes())
     acq, over, variants = JOBS[job]
+    over = over(seed) if callable(over) else over
     c0 = time.process_time()
     truth, rec = _session(seed, over, ACQ[acq], render=True)
     windows = settled_windows(rec.joint_stamps_ns, rec.joint_positions)
@@ -190,13 +223,13 @@ def tracker_job(base, job):
     is simulated again with the effect; frames and detections are the clean ones (checked: same stage)."""
     seed = base["seed"]
     over = TRACKER_JOBS[job](np.random.default_rng([seed, 11, list(TRACKER_JOBS).index(job)]))
-    truth, rec = _session(seed, over, ACQ["grid"], render=False)
+    truth, rec = _session(seed, over, ACQ[base["acq"]], render=False)
     if not np.array_equal(rec.joint_positions, base["joint"][1]):
         raise RuntimeError(f"seed {seed}: the re-simulated session differs from the clean recording")
     if job in SETTLED_ONLY:
         win = settled_windows(rec.joint_stamps_ns, rec.joint_positions)
         rec.tracker = [r for r in rec.tracker if in_window(r[0], win) >= 0]
-    return {**base, "job": job, "acq": "grid", "tracker": rec.tracker,
+    return {**base, "job": job, "acq": base["acq"], "tracker": rec.tracker,
             "variants": {"true": base["variants"]["true"]}, "truth": truth_summary(truth), "render_cpu_s": 0.0}
 
 
@@ -242,6 +275,9 @@ CASES = {
     ("clean_dense", "true"): ("clean_dense", None, True),
     ("stage_scale_dense", "true"): ("stage_lead_dense", "stage_axis_scale", True),
     ("stage_default_dense", "true"): ("stage_default_dense", "stage_axis_scale", True),
+    ("clean_reveal", "true"): ("clean_reveal", None, True),
+    ("stage_lead_reveal", "true"): ("stage_lead_reveal", "stage_axis_scale", True),
+    ("tracker_scale_gross_reveal", "true"): ("tracker_scale_gross_reveal", "tracker_length_scale", True),
     ("drift", "true"): ("camera_rotation_drift", "camera_rotation_drift", True),
     ("drift_fast", "true"): ("camera_rotation_drift", "camera_rotation_drift", False),
     ("clean", "pp"): ("principal_point_error", "principal_point_error", False),
@@ -253,6 +289,9 @@ CASES = {
     ("tracker_lag", "true"): ("tracker_timing_lag", "tracker_timing_lag", True),
     ("tracker_lag_settled", "true"): ("tracker_timing_lag", "tracker_timing_lag", False),
 }
+
+
+CLEAN_CASES = ("clean", "clean_small", "clean_dense", "clean_reveal")
 
 
 def _rms(v):
@@ -318,10 +357,10 @@ def summarise(rows):
     # a fifth of the stations, so even a clean recording's held-out rms sits above the neighbour-difference floor
     clean_ho = {r["seed"]: r["held_out_before"] for r in clean}
     # a dense-grid row is compared with the seed's dense clean control (its own acquisition)
-    clean_ho_acq = {(r["seed"], r["acq"]): r["held_out_before"] for r in rows if r["case"] in ("clean", "clean_dense")}
+    clean_ho_acq = {(r["seed"], r["acq"]): r["held_out_before"] for r in rows if r["case"] in CLEAN_CASES}
 
     def ref_ho(r):
-        return clean_ho_acq.get((r["seed"], "dense" if r["acq"] == "dense" else "grid"))
+        return clean_ho_acq.get((r["seed"], r["acq"] if r["acq"] in ("dense", "reveal") else "grid"))
 
     def at_floor(r):
         return ref_ho(r) is not None and r["held_out_after"] <= 1.25 * ref_ho(r)
@@ -331,10 +370,10 @@ def summarise(rows):
            "clean_false_alarm_terms": sorted({t for r in clean for t in r["terms"]}),
            "clean_held_out_median_px": float(np.median(list(clean_ho.values()))) if clean_ho else None,
            "effects": {}, "cannot_reveal": {}}
-    for name in ("clean_small", "clean_dense"):
+    for name in CLEAN_CASES[1:]:
         cc = [r for r in rows if r["case"] == name]
         out[f"{name}_false_alarms"] = f"{sum(not r['adequate'] for r in cc)}/{len(cc)}"
-    for case in sorted({r["case"] for r in rows} - {"clean", "clean_small", "clean_dense"}):
+    for case in sorted({r["case"] for r in rows} - set(CLEAN_CASES)):
         rr = [r for r in rows if r["case"] == case and r["reveals"]]
         if rr:
             ok = [r for r in rr if r["top1"] == r["expect"] and r["true"] and abs(r["est"] - r["true"]) <= 0.15 * r["true"]]
@@ -426,10 +465,11 @@ def main():
         return
     for x in acqs:                  # detections cached by an older version: its truth summary lacks X*
         if "x_star_tracker_read" not in x["truth"]:
-            x["truth"] = truth_summary(_truth(x["seed"], JOBS[x["job"]][1])[0])
-    clean = {x["seed"]: x for x in acqs if x["job"] == "clean"}
-    acqs += [tracker_job(clean[s], j) for s in range(a.first, a.first + a.effect_seeds) for j in TRACKER_JOBS
-             if s in clean and (a.only is None or j in a.only)]
+            over = JOBS[x["job"]][1]
+            x["truth"] = truth_summary(_truth(x["seed"], over(x["seed"]) if callable(over) else over)[0])
+    base = {(x["seed"], x["job"]): x for x in acqs}
+    acqs += [tracker_job(base[(s, TRACKER_BASE.get(j, "clean"))], j) for s in range(a.first, a.first + a.effect_seeds)
+             for j in TRACKER_JOBS if (s, TRACKER_BASE.get(j, "clean")) in base and (a.only is None or j in a.only)]
     print(json.dumps(analyse_all(acqs, a), default=float))
 
 

@@ -40,3 +40,11 @@ def test_magnitudes_match_the_spec():
                      + 2 * s.angular_rad_sd ** 2 * off @ off)
     assert rms == pytest.approx(expect, rel=0.12)     # 400 draws of 3 components: ~4 % sd
     assert 1e-6 < expect < 5e-6                       # a few um over 25 mm: a precision stage
+
+
+def test_explicit_scale_replaces_only_the_scale_draw():
+    drawn = make_stage_errors(7, StageErrorSpec())
+    fixed = make_stage_errors(7, StageErrorSpec(scale_ppm=(40.0, -10.0, 25.0)))
+    assert np.allclose(fixed.scale, [40e-6, -10e-6, 25e-6], rtol=0, atol=1e-15)
+    # the rest of the seeded draw (straightness, angular motions) is the same
+    assert np.array_equal(fixed.straight, drawn.straight) and np.array_equal(fixed.G, drawn.G)

@@ -38,6 +38,7 @@ class StageErrorSpec:
     angular_rad_sd: float = 1.5e-5          # per `ref_travel_m` of travel, each rotation of each axis
     ref_travel_m: float = 0.025
     abbe_offset_m: tuple = (0.04, 0.0, -0.06)   # metrology point relative to X* (stage frame)
+    scale_ppm: tuple | None = None          # explicit per-axis scale errors (ppm) instead of the draw
 
 
 @dataclass(frozen=True)
@@ -68,7 +69,9 @@ def make_stage_errors(seed: int, spec: StageErrorSpec | None = None) -> StageErr
     s = spec or StageErrorSpec()
     rng = np.random.default_rng(seed)
     L = s.ref_travel_m
-    scale = rng.normal(0.0, s.scale_ppm_sd * 1e-6, 3)
+    scale = rng.normal(0.0, s.scale_ppm_sd * 1e-6, 3)      # drawn either way: the rest stays as seeded
+    if s.scale_ppm is not None:
+        scale = np.asarray(s.scale_ppm, float).reshape(3) * 1e-6
     straight = np.zeros((3, 3))
     for k in range(3):
         perp = [i for i in range(3) if i != k]
