@@ -92,8 +92,7 @@ ACQ = {
     "dense": dict(pattern=pd.grid_pattern(n_xy=6, n_z=3)),
     # the stage terms' revealing acquisition: the dense grid over the widest travel that keeps every disc in
     # every field on every cell (+-8 / +-5 mm: 75 px of margin at the worst corner; +-9 / +-6 mm clips), and four
-    # frames per station (single frames carry ~0.4 urad of image noise each; the station's fixed detection
-    # pattern, ~0.1-0.4 urad, does not average away)
+    # frames per station (averaging the ~0.4 urad of image noise each single frame carries)
     "reveal": dict(pattern=pd.grid_pattern(n_xy=6, n_z=3, half_xy_m=0.008, half_z_m=0.005),
                    frames_per_station=4, dwell_s=2.0),
 }
@@ -129,6 +128,12 @@ JOBS = {
     "stage_lead_reveal": ("reveal", fixed_lead, ("true",)),
     "stage_default_reveal": ("reveal", dict(stage_error_motions=True), ("true",)),
 }
+
+
+def job_overrides(job, seed):
+    """A rendering job's physics overrides for a seed (a dict, or a function of the seed)."""
+    over = JOBS[job][1]
+    return over(seed) if callable(over) else over
 
 
 def _sign(rng):
@@ -185,8 +190,8 @@ def render_job(args):
     path = None if cache is None else pathlib.Path(cache) / f"{job}_{seed}.pkl"
     if path is not None and path.exists():
         return pickle.loads(path.read_bytes())
-    acq, over, variants = JOBS[job]
-    over = over(seed) if callable(over) else over
+    acq, _, variants = JOBS[job]
+    over = job_overrides(job, seed)
     c0 = time.process_time()
     truth, rec = _session(seed, over, ACQ[acq], render=True)
     windows = settled_windows(rec.joint_stamps_ns, rec.joint_positions)
@@ -468,8 +473,7 @@ def main():
         return
     for x in acqs:                  # detections cached by an older version: its truth summary lacks X*
         if "x_star_tracker_read" not in x["truth"]:
-            over = JOBS[x["job"]][1]
-            x["truth"] = truth_summary(_truth(x["seed"], over(x["seed"]) if callable(over) else over)[0])
+            x["truth"] = truth_summary(_truth(x["seed"], job_overrides(x["job"], x["seed"]))[0])
     base = {(x["seed"], x["job"]): x for x in acqs}
     acqs += [tracker_job(base[(s, TRACKER_BASE.get(j, "clean"))], j) for s in range(a.first, a.first + a.effect_seeds)
              for j in TRACKER_JOBS if (s, TRACKER_BASE.get(j, "clean")) in base and (a.only is None or j in a.only)]

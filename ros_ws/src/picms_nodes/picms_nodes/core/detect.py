@@ -22,9 +22,6 @@ import numpy as np
 from .camera import Intrinsics
 
 
-_N_PASS2 = 2
-
-
 class DetectionError(ValueError):
     """The image does not show a usable SMR disc; the message names why."""
 
@@ -178,7 +175,7 @@ def detect_disc(image, intr: Intrinsics, *, step_deg: float = 2.0, nest_margin_d
     # with a 4.3 px defocus blur, measured). The second pass is centred on the first pass's own circle and
     # reaches 4 blur sd beyond the edge on both sides.
     half_in, half_out = 12.0, 14.0
-    for it in range(_N_PASS2):
+    for it in range(2):
         ang, er, ok, inside, blur = _edges(img, cx, cy, R - half_in, R + half_out, step_deg, 0.25, 0.5 * contrast)
         blocked = ~ok
         if blocked.any():
@@ -189,7 +186,7 @@ def detect_disc(image, intr: Intrinsics, *, step_deg: float = 2.0, nest_margin_d
             ok &= ~near
         if ok.sum() < 30:
             raise DetectionError(f"too few disc edges found ({int(ok.sum())} of {ang.size} rays usable)")
-        if it < _N_PASS2 - 1:
+        if it == 0:
             (cx, cy), R = _circle_fit(np.column_stack([cx + np.cos(ang[ok]) * er[ok], cy + np.sin(ang[ok]) * er[ok]]))
             sd = float(np.nanmedian(blur[ok])) if np.isfinite(blur[ok]).any() else 1.0
             half_in, half_out = max(12.0, 4.0 * sd + 4.0), max(14.0, 4.0 * sd + 6.0)
