@@ -273,3 +273,40 @@ def test_campaign_long_focal_spot_drift_is_named_with_its_size():
     # too few positions: said, not guessed
     few = campaign_drift(out["positions"][:2])
     assert not few["performed"] and "needs 3" in few["why"]
+
+
+def _three_smooth_terms(seed, coef):
+    """600 residuals of unit noise along a smooth axis; candidates Y, Z (orthogonal-ish smooth shapes) and
+    X = Y + Z + 0.5 W (a third shape): the data carry coef[0] Y + coef[1] Z."""
+    from ct_calib_nodes.core.discrepancy import Candidate
+    rng = np.random.default_rng(seed)
+    n = 600
+    t = np.linspace(0, 1, n)
+    y, z, w = np.sin(2 * np.pi * t), np.cos(3 * np.pi * t), np.cos(5 * np.pi * t)
+    ds = Dataset(residual=coef[0] * y + coef[1] * z + rng.normal(0, 1, n), jac=np.ones((n, 1)),
+                 nominal_names=("offset",), sigma=np.ones(n), component=np.zeros(n, int), group=np.arange(n),
+                 neighbours=np.column_stack([np.arange(n - 1), np.arange(1, n)]), fold=(np.arange(n) * 5) // n,
+                 shared_shift=False)
+    cands = [Candidate(id=i, name=i, mechanism="", param_names=("a",), param_units=("1",), basis=b[:, None],
+                       magnitude_unit="1", display_scale=np.ones(1), reveal_by="")
+             for i, b in (("X", y + z + 0.5 * w), ("Y", y), ("Z", z))]
+    return ds, cands
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_term_set_refinement_replaces_a_greedy_stand_in(seed):
+    # Y and Z at 0.6 (each ~10 sd of its estimate): the forward selection takes X, which stands in for both,
+    # and then neither passes alone; the best subset by joint BIC is {Y, Z}, each sized within 4 u
+    from ct_calib_nodes.core.discrepancy import analyse
+    ds, cands = _three_smooth_terms(seed, (0.6, 0.6))
+    greedy = analyse(ds, cands, max_terms=2)
+    assert "X" in [f["term"] for f in greedy["findings"]]
+    out = analyse(ds, cands, max_terms=2, refine=True)
+    assert sorted(f["term"] for f in out["findings"]) == ["Y", "Z"]
+    for f in out["findings"]:
+        u = float(np.sqrt(f["theta_cov"][0, 0]))
+        assert 0.04 < u < 0.09 and abs(f["theta"][0] - 0.6) < 4 * u, (f["term"], f["theta"], u)
+    # a single true term stays alone
+    ds1, _ = _three_smooth_terms(seed, (0.6, 0.0))
+    one = analyse(ds1, cands, max_terms=2, refine=True)
+    assert [f["term"] for f in one["findings"]] == ["Y"]

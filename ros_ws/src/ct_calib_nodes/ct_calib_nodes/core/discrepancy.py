@@ -329,9 +329,93 @@ def locate(ctx: Context, q_model, families: dict, z=None) -> list:
     return out
 
 
+def _set_score(ctx: Context, q0, ws: list):
+    """Joint evidence of a set of whitened bases against the nominal model: (delta BIC, delta chi2, rank)."""
+    d, k, _ = _test_block(ctx, q0, np.hstack(ws))
+    return d - k * np.log(ctx.n), d, k
+
+
+def refine_set(ctx: Context, q0, chosen: list, cand_w: dict, candidates: list, plausible, *, max_terms: int,
+               bic_threshold: float = BIC_THRESHOLD, say=lambda _m: None):
+    """The set of up to max_terms terms with the highest joint BIC, in place of the forward selection's.
+
+    Forward selection is greedy: a term taken early can stand in for two that only explain the data
+    together (a camera aspect error for a stage scale error while the stage's angular motions are not
+    in), and then neither of the two passes the threshold alone. Every subset is scored (a few hundred
+    least-squares projections); one replaces the forward set only if its joint BIC is higher, every
+    member earns its place given the others (BIC drop without it >= bic_threshold, held-out chi2 worse
+    without it) and every magnitude is plausible. Returns (chosen, findings, alternatives): the findings'
+    statistics are each term's given the others (None when the forward set stands), and
+    ``alternatives[i]`` the candidates that, in place of term i with the others kept, explain the data
+    about as well (joint BIC within DEGENERATE_BIC, or held-out chi2 no worse)."""
+    import itertools
+    raw = {c.id: c.basis for c in candidates}
+    ids = [c.id for c in candidates]
+    memo, memo_cv = {frozenset(): (0.0, 0.0, 0)}, {}
+
+    def score(S):
+        key = frozenset(S)
+        if key not in memo:
+            memo[key] = _set_score(ctx, q0, [cand_w[i] for i in sorted(key)])
+        return memo[key]
+
+    def cv(S):
+        key = frozenset(S)
+        if key not in memo_cv:
+            memo_cv[key] = _cv(ctx, [cand_w[i] for i in sorted(key)], [raw[i] for i in sorted(key)])
+        return memo_cv[key]
+    cur = score(chosen)[0]
+    final, new = list(chosen), False
+    ranked = sorted(((score(S)[0], S) for r in range(1, max_terms + 1) for S in itertools.combinations(ids, r)),
+                    key=lambda x: -x[0])
+    for b, S in ranked:
+        if b <= cur:
+            break
+        if all(b - score(set(S) - {i})[0] >= bic_threshold for i in S) and \
+                all(cv(S)[0] < cv(set(S) - {i})[0] for i in S) and plausible(list(S)):
+            say(f"term set {list(S)}: joint delta BIC {b:.1f}, above the forward selection's {cur:.1f} "
+                f"({chosen})")
+            final, cur, new = list(S), b, True
+            break
+    findings = None
+    if new:
+        ln_n = np.log(ctx.n)
+        full = score(final)
+        order = sorted(final, key=lambda i: -(full[0] - score(set(final) - {i})[0]))
+        findings, prev = [], []
+        for i in order:
+            wo = score(set(final) - {i})
+            d, k = full[1] - wo[1], full[2] - wo[2]
+            cv_prev = cv(prev)[0]
+            cv_new, rms_new = cv(prev + [i])
+            findings.append({"term": i, "delta_chi2": d, "dof": k, "delta_bic": d - k * ln_n,
+                             "significance_sigma": sigma_from_chi2(d, max(k, 1)), "cv_gain": cv_prev - cv_new,
+                             "held_out_rms_after": rms_new, "degenerate_with": [], "given_the_others": True})
+            prev.append(i)
+        final = order
+    alternatives = {}
+    cv_cur = cv(final)[0]
+    for pos, i in enumerate(final):
+        alt = []
+        for c in ids:
+            if c in final:
+                continue
+            trial = final[:pos] + [c] + final[pos + 1:]
+            b = score(trial)[0]
+            if b >= cur - 3 * BIC_THRESHOLD and (b >= cur - DEGENERATE_BIC or cv(trial)[0] <= cv_cur) \
+                    and plausible(trial):
+                alt.append(c)
+        alternatives[i] = alt
+    return final, findings, alternatives
+
+
 def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold: float = BIC_THRESHOLD,
-            progress=None) -> dict:
-    """Run floor, locate, name, model, limits. Returns a plain dict (the core of discrepancy.json)."""
+            progress=None, refine: bool = False) -> dict:
+    """Run floor, locate, name, model, limits. Returns a plain dict (the core of discrepancy.json).
+
+    refine: after the forward selection, the best subset by joint BIC when it beats the forward set
+    (:func:`refine_set`), and as degenerate the candidates that could replace a chosen term with the others
+    kept."""
     say = progress or (lambda _m: None)
     ctx = make_context(ds)
     ln_n = np.log(ctx.n)
@@ -350,62 +434,82 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
         f"{np.round(ctx.floor.tau, 4).tolist()} {ds.unit}; chi2/dof against it {before['chi2_dof']:.3f}")
     located = locate(ctx, q0, ds.empirical)
     # ---- name: greedy forward selection
-    chosen, findings, implausible = [], [], []
-    q_model = q0
-    scores_first = None
-    while len(chosen) < max_terms:
-        scores = []
-        for c in candidates:
-            if c.id in chosen:
-                continue
-            d, k, _ = _test_block(ctx, q_model, cand_w[c.id])
-            if k == 0:
-                continue
-            scores.append((d - k * ln_n, d, k, c.id))
-        if scores_first is None:
-            scores_first = {s[3]: s for s in scores}
-        if not scores:
-            break
-        scores.sort(reverse=True)
-        # a term is a physical name only at a physically plausible magnitude
-        zp = _project_out(q_model, ctx.z)
-        best = None
-        for s_ in scores:
-            if s_[0] < bic_threshold:
+    def forward():
+        chosen, findings, implausible = [], [], []
+        q_model = q0
+        scores_first = None
+        while len(chosen) < max_terms:
+            scores = []
+            for c in candidates:
+                if c.id in chosen:
+                    continue
+                d, k, _ = _test_block(ctx, q_model, cand_w[c.id])
+                if k == 0:
+                    continue
+                scores.append((d - k * ln_n, d, k, c.id))
+            if scores_first is None:
+                scores_first = {s[3]: s for s in scores}
+            if not scores:
                 break
-            th = _fit(zp, _project_out(q_model, cand_w[s_[3]]))
-            if by_id[s_[3]].mag(th) <= by_id[s_[3]].plausible_max:
-                best = s_
+            scores.sort(reverse=True)
+            # a term is a physical name only at a physically plausible magnitude
+            zp = _project_out(q_model, ctx.z)
+            best = None
+            for s_ in scores:
+                if s_[0] < bic_threshold:
+                    break
+                th = _fit(zp, _project_out(q_model, cand_w[s_[3]]))
+                if by_id[s_[3]].mag(th) <= by_id[s_[3]].plausible_max:
+                    best = s_
+                    break
+                implausible.append({"term": s_[3], "delta_bic": s_[0], "magnitude": by_id[s_[3]].mag(th)})
+            if best is None:
                 break
-            implausible.append({"term": s_[3], "delta_bic": s_[0], "magnitude": by_id[s_[3]].mag(th)})
-        if best is None:
-            break
-        scores = [best] + [s_ for s_ in scores if s_ is not best]
-        extra_w = [cand_w[i] for i in chosen + [best[3]]]
-        extra_r = [by_id[i].basis for i in chosen + [best[3]]]
-        prev_w = [cand_w[i] for i in chosen]
-        prev_r = [by_id[i].basis for i in chosen]
-        cv_prev, _ = _cv(ctx, prev_w, prev_r)
-        cv_new, cv_rms_new = _cv(ctx, extra_w, extra_r)
-        cv_gain = cv_prev - cv_new
-        # degenerate alternatives: nearly the same evidence now, and no longer needed once best is in
-        q_try, _ = _orth(np.hstack([q_model, cand_w[best[3]]]))
-        degenerate = []
-        for s in scores[1:]:
-            if s[0] >= best[0] - DEGENERATE_BIC and s[0] >= bic_threshold and s[3] not in {i["term"] for i in implausible}:
-                d2, k2, _ = _test_block(ctx, q_try, cand_w[s[3]])
-                if d2 - k2 * ln_n < bic_threshold:
-                    degenerate.append(s[3])
-        if cv_gain <= 0:
-            say(f"{best[3]}: BIC {best[0]:.1f} but no held-out gain ({cv_gain:.4g}); not accepted")
-            break
-        chosen.append(best[3])
-        q_model = q_try
-        findings.append({"term": best[3], "delta_chi2": best[1], "dof": best[2], "delta_bic": best[0],
-                         "significance_sigma": sigma_from_chi2(best[1], best[2]), "cv_gain": cv_gain,
-                         "held_out_rms_after": cv_rms_new, "degenerate_with": degenerate})
-        say(f"found {best[3]}: delta BIC {best[0]:.1f}, {findings[-1]['significance_sigma']:.1f} sigma, "
-            f"held-out chi2/n gain {cv_gain:.4f}" + (f"; degenerate with {degenerate}" if degenerate else ""))
+            scores = [best] + [s_ for s_ in scores if s_ is not best]
+            extra_w = [cand_w[i] for i in chosen + [best[3]]]
+            extra_r = [by_id[i].basis for i in chosen + [best[3]]]
+            prev_w = [cand_w[i] for i in chosen]
+            prev_r = [by_id[i].basis for i in chosen]
+            cv_prev, _ = _cv(ctx, prev_w, prev_r)
+            cv_new, cv_rms_new = _cv(ctx, extra_w, extra_r)
+            cv_gain = cv_prev - cv_new
+            # degenerate alternatives: nearly the same evidence now, and no longer needed once best is in
+            q_try, _ = _orth(np.hstack([q_model, cand_w[best[3]]]))
+            degenerate = []
+            for s in scores[1:]:
+                if s[0] >= best[0] - DEGENERATE_BIC and s[0] >= bic_threshold and s[3] not in {i["term"] for i in implausible}:
+                    d2, k2, _ = _test_block(ctx, q_try, cand_w[s[3]])
+                    if d2 - k2 * ln_n < bic_threshold:
+                        degenerate.append(s[3])
+            if cv_gain <= 0:
+                say(f"{best[3]}: BIC {best[0]:.1f} but no held-out gain ({cv_gain:.4g}); not accepted")
+                break
+            chosen.append(best[3])
+            q_model = q_try
+            findings.append({"term": best[3], "delta_chi2": best[1], "dof": best[2], "delta_bic": best[0],
+                             "significance_sigma": sigma_from_chi2(best[1], best[2]), "cv_gain": cv_gain,
+                             "held_out_rms_after": cv_rms_new, "degenerate_with": degenerate})
+            say(f"found {best[3]}: delta BIC {best[0]:.1f}, {findings[-1]['significance_sigma']:.1f} sigma, "
+                f"held-out chi2/n gain {cv_gain:.4f}" + (f"; degenerate with {degenerate}" if degenerate else ""))
+        return chosen, findings, implausible, scores_first
+
+    def plausible(ids):
+        xs = _project_out(q0, np.hstack([cand_w[i] for i in ids]))
+        th = _fit(_project_out(q0, ctx.z), xs)
+        k, ok = 0, True
+        for i in ids:
+            p = cand_w[i].shape[1]
+            ok &= by_id[i].mag(th[k:k + p]) <= by_id[i].plausible_max
+            k += p
+        return ok
+    chosen, findings, implausible, scores_first = forward()
+    if refine and chosen:
+        chosen, f_new, alternatives = refine_set(ctx, q0, chosen, cand_w, candidates, plausible,
+                                                 max_terms=max_terms, bic_threshold=bic_threshold, say=say)
+        findings = f_new or findings
+        for f in findings:
+            f["degenerate_with"] = sorted(set(f["degenerate_with"]) | set(alternatives.get(f["term"], [])))
+
     # ---- joint linear fit with the chosen terms (the adapter refits nonlinearly)
     chosen_w, chosen_r = [cand_w[i] for i in chosen], [by_id[i].basis for i in chosen]
     xw = np.hstack([ctx.x0] + chosen_w)
