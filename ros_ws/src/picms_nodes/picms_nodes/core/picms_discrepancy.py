@@ -249,6 +249,22 @@ def _dW_angular(c):
     return out
 
 
+def _dU_angular(c):
+    # the cameras ride on the carriage: turned by w = G q they see the SMR* (fixed) at
+    # R_c^T (-C - A q + w x (A q) - w x (S - p_abbe)) in the body frame. The Abbe part w x (p_abbe - S) is
+    # linear in q with an unknown lever (it reads as stage_axis_scale); the carriage turning the travel,
+    # w x A q, is bilinear in q with no unknown but G: its part quadratic in q about the mean station (the
+    # linear part is absorbed with the Abbe part); the origin of q only moves linear parts
+    d = c["dq"] - c["dq"].mean(axis=0)
+    Ad = d @ c["A"].T
+    out = np.zeros((len(d), 3, 9))
+    for a in range(3):
+        e = np.zeros(3)
+        e[a] = 1.0
+        out[:, :, 3 * a:3 * a + 3] = (np.cross(e, Ad)[:, :, None] * d[:, None, :])
+    return out
+
+
 def _dX_tracker_scale(c):
     # (1 + s) about the tracker origin: s X; its constant part s X(reference) only moves X*, absorbed
     return 1e6 * (c["dq"] @ (c["R_ts"] @ c["A"]).T)[:, :, None]
@@ -341,12 +357,13 @@ CATALOGUE = (
               "a longer travel (the bow grows with its square) or a straightedge reversal",
               cam=_cam_from_U(_dU_straight), trk=_dX_straight, per_camera=False, plausible_max=50.0),
     PicmsTerm("stage_angular", "stage angular error motions (pitch, yaw, roll)",
-              "the carriage rotates by G q as the axes travel; the tracker sees the constellation turn (the "
-              "cameras see it only through the unknown Abbe offset, as stage_axis_scale)",
+              "the carriage rotates by G q as the axes travel; the tracker sees the constellation turn, the "
+              "cameras (riding on the carriage) see the travel turned with it, w x A q, bilinear in q (the "
+              "Abbe offset's part is linear in q and reads as stage_axis_scale)",
               tuple(f"about_{'xyz'[a]}_per_{'xyz'[k]}" for a in range(3) for k in range(3)), ("rad/m",) * 9,
               "urad per 25 mm of travel (rms over the 9)", 0.025 * 1e6,
               "a longer travel with the tracker's constellation, or an autocollimator / electronic level",
-              rot=_dW_angular, per_camera=False, plausible_max=1e4),
+              cam=_cam_from_U(_dU_angular), rot=_dW_angular, per_camera=False, plausible_max=1e4),
     # ---- tracker (cell)
     PicmsTerm("tracker_length_scale", "tracker length scale error (or a lead error common to the three axes)",
               "the tracker's lengths are (1 + s) times true (air refractive index, ADM / interferometer scale); "
@@ -687,7 +704,7 @@ def run(result: CalibrationResult, camera_info: dict, *, progress=None, max_term
     nc = len(ext["cameras"])
     say(f"{ext['n_cam_rows']} disc-centre residuals ({nc} cameras, {ext['n_stations']} stations), "
         f"{ds.residual.size - ext['n_cam_rows']} tracker-link residuals; {len(cands)} catalogue terms")
-    res = analyse(ds, cands, max_terms=max_terms, progress=say)
+    res = analyse(ds, cands, max_terms=max_terms, progress=say, refine=True)
     if "lens_radial_k1" in res["chosen"]:
         # k1 ~ -0.3 is far from the tangent the basis was taken at: the size came out large by 1.0 % +- 0.8 %
         # (20 seeds; its sd is the seeds' scatter). Once more with the secant at this k1: -0.2 % +- 0.8 %.
@@ -695,7 +712,7 @@ def run(result: CalibrationResult, camera_info: dict, *, progress=None, max_term
         if th.size == nc:
             say(f"lens k1 {np.round(th, 4).tolist()} per camera: analysed again with the secant basis there")
             ds, cands, ext = build(result, camera_info, k1_secant=th)
-            res = analyse(ds, cands, max_terms=max_terms, progress=say)
+            res = analyse(ds, cands, max_terms=max_terms, progress=say, refine=True)
     by_id = {c.id: c for c in cands}
     findings = []
     for f in res["findings"]:
