@@ -72,6 +72,24 @@ def _grid_session(over=None, render=True):
     return truth, rec
 
 
+def test_lazy_session_renders_the_same_frames_as_they_are_read():
+    # a long revealing session (16 frames per station) does not fit in memory: its frames are rendered as
+    # the detector reads them; they must be the eager session's, bit for bit, and the tracker stream too
+    def run(lazy):
+        rng = np.random.default_rng(7)
+        truth = cell.make_cell(rng, cell.make_physics(rng, distortion_k1=-0.3, stage_error_motions=False))
+        rec, _ = campaign.simulate_session(truth, rng, pattern=pd.grid_pattern(n_xy=2, n_z=1)[:2], dwell_s=1.2,
+                                           mid_move_frames=0, frames_per_station=2, lazy=lazy)
+        return rec
+    eager, lazy = run(False), run(True)
+    assert isinstance(eager.frames, list) and not isinstance(lazy.frames, list)
+    frames = list(lazy.frames)
+    assert len(frames) == len(eager.frames) == 12 and list(lazy.frames) == []      # one pass
+    for (s0, c0, i0), (s1, c1, i1) in zip(eager.frames, frames):
+        assert s0 == s1 and c0 == c1 and np.array_equal(i0, i1)
+    assert all(np.array_equal(a[2], b[2]) for a, b in zip(eager.tracker, lazy.tracker))
+
+
 @pytest.fixture(scope="module")
 def grid_session():
     # one cell rendered once on the grid acquisition (~15 s)

@@ -57,13 +57,17 @@ class SessionTruth:
 def simulate_session(truth: CellTruth, rng, *, pattern=None, dwell_s: float = 2.5,
                      frames_per_station: int = 1, tracker_rate_hz: float = 60.0,
                      joint_rate_hz: float = 50.0, mid_move_frames: int = 2,
-                     stage: StageSim | None = None, render=True, settle_wait_s: float = 0.8):
+                     stage: StageSim | None = None, render=True, settle_wait_s: float = 0.8, lazy: bool = False):
     """Run the calibration session on the simulated cell; return (Recording, SessionTruth).
 
     Frames are rendered `settle_wait_s` after each move ends (then every 0.3 s) and, for the
     first `mid_move_frames` moves, once in the middle of the move (a recording made by real
     software has such frames). Tracker readings go round-robin over the constellation and the
     SMR* all the time (moving or not).
+
+    lazy: ``rec.frames`` is a one-pass generator that renders each frame as it is read (the same frames
+    and noise draws, if nothing else draws from ``rng`` first), so a long session need not fit in memory
+    (16 frames per station of a 109-station session are ~20 GB of images).
     """
     pattern = appendix_a_pattern() if pattern is None else np.asarray(pattern, float)
     st = stage or StageSim(resolution_m=truth.physics.stage_resolution_m)
@@ -95,16 +99,21 @@ def simulate_session(truth: CellTruth, rng, *, pattern=None, dwell_s: float = 2.
         probe = name == cell["tracker"]["probe_smr"]
         stamp = int(round((x + truth.physics.tracker_lag_s) * 1e9))     # hidden clock lag
         rec.tracker.append((stamp, name, tracker_reading(truth, p, rng, probe=probe)))
-    for x in frame_times:
-        q = st.true_q(x)
-        stamp = int(round(x * 1e9))
-        for j, cam in enumerate(truth.cameras):
-            if render:
-                img = render_frame(truth.camera_pose_at(j, q, x), cam.true_intrinsics, truth.physics, rng,
-                                   sphere_stage=truth.smr_star_stage, nest_axis_stage=truth.nest_axis_stage)
-            else:
-                img = None
-            rec.frames.append((stamp, cam.name, img))
+    def frames():
+        for x in frame_times:
+            q = st.true_q(x)
+            stamp = int(round(x * 1e9))
+            for j, cam in enumerate(truth.cameras):
+                if render:
+                    img = render_frame(truth.camera_pose_at(j, q, x), cam.true_intrinsics, truth.physics, rng,
+                                       sphere_stage=truth.smr_star_stage, nest_axis_stage=truth.nest_axis_stage)
+                else:
+                    img = None
+                yield stamp, cam.name, img
+    if lazy:
+        rec.frames = frames()
+    else:
+        rec.frames.extend(frames())
     from .camera import project
     xs = {c.name: project(c.pose, c.true_intrinsics, truth.smr_star_stage)[0] for c in truth.cameras}
     return rec, SessionTruth(truth, np.array(q_true), xs)
