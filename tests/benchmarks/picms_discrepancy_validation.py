@@ -457,9 +457,11 @@ def parts_summary(rr):
     how many it is named (anywhere in the findings) and sized within 15 %; and where it is named below it."""
     out = {}
     for term in rr[0]["parts"]:
+        def rel_err(r):
+            return (r["found"][term][0] - r["parts"][term]["true"]) / r["parts"][term]["true"]
         above = [r for r in rr if r["parts"][term]["limit"] and r["parts"][term]["true"] > r["parts"][term]["limit"]]
         named = [r for r in above if term in r["found"]]
-        rel = [(r["found"][term][0] - r["parts"][term]["true"]) / r["parts"][term]["true"] for r in named]
+        rel = [rel_err(r) for r in named]
         out[term] = {"n": len(rr), "above_limit": len(above), "named": len(named),
                      "within_15pct": sum(abs(e) <= 0.15 for e in rel),
                      # not named, but listed as indistinguishable from a finding that stands in for it
@@ -468,9 +470,7 @@ def parts_summary(rr):
                      "rel_err": [round(e, 3) for e in rel],
                      "named_below_limit": sum(term in r["found"] for r in rr if r not in above),
                      # the limit is the worst direction's (90 % power): a draw in a better direction shows below it
-                     "rel_err_below_limit": [round((r["found"][term][0] - r["parts"][term]["true"])
-                                                   / r["parts"][term]["true"], 3)
-                                             for r in rr if r not in above and term in r["found"]],
+                     "rel_err_below_limit": [round(rel_err(r), 3) for r in rr if r not in above and term in r["found"]],
                      "true_median": float(np.median([r["parts"][term]["true"] for r in rr])),
                      "limit_median": float(np.median([r["parts"][term]["limit"] for r in rr
                                                       if r["parts"][term]["limit"]] or [np.nan]))}

@@ -390,7 +390,7 @@ def refine_set(ctx: Context, q0, chosen: list, cand_w: dict, candidates: list, p
             cv_new, rms_new = cv(prev + [i])
             findings.append({"term": i, "delta_chi2": d, "dof": k, "delta_bic": d - k * ln_n,
                              "significance_sigma": sigma_from_chi2(d, max(k, 1)), "cv_gain": cv_prev - cv_new,
-                             "held_out_rms_after": rms_new, "degenerate_with": [], "given_the_others": True})
+                             "held_out_rms_after": rms_new, "degenerate_with": []})
             prev.append(i)
         final = order
     alternatives = {}
@@ -402,7 +402,7 @@ def refine_set(ctx: Context, q0, chosen: list, cand_w: dict, candidates: list, p
                 continue
             trial = final[:pos] + [c] + final[pos + 1:]
             b = score(trial)[0]
-            if b >= cur - 3 * BIC_THRESHOLD and (b >= cur - DEGENERATE_BIC or cv(trial)[0] <= cv_cur) \
+            if b >= cur - 3 * bic_threshold and (b >= cur - DEGENERATE_BIC or cv(trial)[0] <= cv_cur) \
                     and plausible(trial):
                 alt.append(c)
         alternatives[i] = alt
@@ -434,64 +434,62 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
         f"{np.round(ctx.floor.tau, 4).tolist()} {ds.unit}; chi2/dof against it {before['chi2_dof']:.3f}")
     located = locate(ctx, q0, ds.empirical)
     # ---- name: greedy forward selection
-    def forward():
-        chosen, findings, implausible = [], [], []
-        q_model = q0
-        scores_first = None
-        while len(chosen) < max_terms:
-            scores = []
-            for c in candidates:
-                if c.id in chosen:
-                    continue
-                d, k, _ = _test_block(ctx, q_model, cand_w[c.id])
-                if k == 0:
-                    continue
-                scores.append((d - k * ln_n, d, k, c.id))
-            if scores_first is None:
-                scores_first = {s[3]: s for s in scores}
-            if not scores:
+    chosen, findings, implausible = [], [], []
+    q_model = q0
+    scores_first = None
+    while len(chosen) < max_terms:
+        scores = []
+        for c in candidates:
+            if c.id in chosen:
+                continue
+            d, k, _ = _test_block(ctx, q_model, cand_w[c.id])
+            if k == 0:
+                continue
+            scores.append((d - k * ln_n, d, k, c.id))
+        if scores_first is None:
+            scores_first = {s[3]: s for s in scores}
+        if not scores:
+            break
+        scores.sort(reverse=True)
+        # a term is a physical name only at a physically plausible magnitude
+        zp = _project_out(q_model, ctx.z)
+        best = None
+        for s_ in scores:
+            if s_[0] < bic_threshold:
                 break
-            scores.sort(reverse=True)
-            # a term is a physical name only at a physically plausible magnitude
-            zp = _project_out(q_model, ctx.z)
-            best = None
-            for s_ in scores:
-                if s_[0] < bic_threshold:
-                    break
-                th = _fit(zp, _project_out(q_model, cand_w[s_[3]]))
-                if by_id[s_[3]].mag(th) <= by_id[s_[3]].plausible_max:
-                    best = s_
-                    break
-                implausible.append({"term": s_[3], "delta_bic": s_[0], "magnitude": by_id[s_[3]].mag(th)})
-            if best is None:
+            th = _fit(zp, _project_out(q_model, cand_w[s_[3]]))
+            if by_id[s_[3]].mag(th) <= by_id[s_[3]].plausible_max:
+                best = s_
                 break
-            scores = [best] + [s_ for s_ in scores if s_ is not best]
-            extra_w = [cand_w[i] for i in chosen + [best[3]]]
-            extra_r = [by_id[i].basis for i in chosen + [best[3]]]
-            prev_w = [cand_w[i] for i in chosen]
-            prev_r = [by_id[i].basis for i in chosen]
-            cv_prev, _ = _cv(ctx, prev_w, prev_r)
-            cv_new, cv_rms_new = _cv(ctx, extra_w, extra_r)
-            cv_gain = cv_prev - cv_new
-            # degenerate alternatives: nearly the same evidence now, and no longer needed once best is in
-            q_try, _ = _orth(np.hstack([q_model, cand_w[best[3]]]))
-            degenerate = []
-            for s in scores[1:]:
-                if s[0] >= best[0] - DEGENERATE_BIC and s[0] >= bic_threshold and s[3] not in {i["term"] for i in implausible}:
-                    d2, k2, _ = _test_block(ctx, q_try, cand_w[s[3]])
-                    if d2 - k2 * ln_n < bic_threshold:
-                        degenerate.append(s[3])
-            if cv_gain <= 0:
-                say(f"{best[3]}: BIC {best[0]:.1f} but no held-out gain ({cv_gain:.4g}); not accepted")
-                break
-            chosen.append(best[3])
-            q_model = q_try
-            findings.append({"term": best[3], "delta_chi2": best[1], "dof": best[2], "delta_bic": best[0],
-                             "significance_sigma": sigma_from_chi2(best[1], best[2]), "cv_gain": cv_gain,
-                             "held_out_rms_after": cv_rms_new, "degenerate_with": degenerate})
-            say(f"found {best[3]}: delta BIC {best[0]:.1f}, {findings[-1]['significance_sigma']:.1f} sigma, "
-                f"held-out chi2/n gain {cv_gain:.4f}" + (f"; degenerate with {degenerate}" if degenerate else ""))
-        return chosen, findings, implausible, scores_first
+            implausible.append({"term": s_[3], "delta_bic": s_[0], "magnitude": by_id[s_[3]].mag(th)})
+        if best is None:
+            break
+        scores = [best] + [s_ for s_ in scores if s_ is not best]
+        extra_w = [cand_w[i] for i in chosen + [best[3]]]
+        extra_r = [by_id[i].basis for i in chosen + [best[3]]]
+        prev_w = [cand_w[i] for i in chosen]
+        prev_r = [by_id[i].basis for i in chosen]
+        cv_prev, _ = _cv(ctx, prev_w, prev_r)
+        cv_new, cv_rms_new = _cv(ctx, extra_w, extra_r)
+        cv_gain = cv_prev - cv_new
+        # degenerate alternatives: nearly the same evidence now, and no longer needed once best is in
+        q_try, _ = _orth(np.hstack([q_model, cand_w[best[3]]]))
+        degenerate = []
+        for s in scores[1:]:
+            if s[0] >= best[0] - DEGENERATE_BIC and s[0] >= bic_threshold and s[3] not in {i["term"] for i in implausible}:
+                d2, k2, _ = _test_block(ctx, q_try, cand_w[s[3]])
+                if d2 - k2 * ln_n < bic_threshold:
+                    degenerate.append(s[3])
+        if cv_gain <= 0:
+            say(f"{best[3]}: BIC {best[0]:.1f} but no held-out gain ({cv_gain:.4g}); not accepted")
+            break
+        chosen.append(best[3])
+        q_model = q_try
+        findings.append({"term": best[3], "delta_chi2": best[1], "dof": best[2], "delta_bic": best[0],
+                         "significance_sigma": sigma_from_chi2(best[1], best[2]), "cv_gain": cv_gain,
+                         "held_out_rms_after": cv_rms_new, "degenerate_with": degenerate})
+        say(f"found {best[3]}: delta BIC {best[0]:.1f}, {findings[-1]['significance_sigma']:.1f} sigma, "
+            f"held-out chi2/n gain {cv_gain:.4f}" + (f"; degenerate with {degenerate}" if degenerate else ""))
 
     def plausible(ids):
         xs = _project_out(q0, np.hstack([cand_w[i] for i in ids]))
@@ -502,7 +500,6 @@ def analyse(ds: Dataset, candidates: list, *, max_terms: int = 4, bic_threshold:
             ok &= by_id[i].mag(th[k:k + p]) <= by_id[i].plausible_max
             k += p
         return ok
-    chosen, findings, implausible, scores_first = forward()
     if refine and chosen:
         chosen, f_new, alternatives = refine_set(ctx, q0, chosen, cand_w, candidates, plausible,
                                                  max_terms=max_terms, bic_threshold=bic_threshold, say=say)

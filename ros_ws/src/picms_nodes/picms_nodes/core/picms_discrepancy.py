@@ -258,10 +258,8 @@ def _dU_angular(c):
     d = c["dq"] - c["dq"].mean(axis=0)
     Ad = d @ c["A"].T
     out = np.zeros((len(d), 3, 9))
-    for a in range(3):
-        e = np.zeros(3)
-        e[a] = 1.0
-        out[:, :, 3 * a:3 * a + 3] = (np.cross(e, Ad)[:, :, None] * d[:, None, :])
+    for a, e in enumerate(np.eye(3)):
+        out[:, :, 3 * a:3 * a + 3] = np.cross(e, Ad)[:, :, None] * d[:, None, :]
     return out
 
 
