@@ -237,13 +237,15 @@ class PicmsCalibrationNode(Node):
             t_wait = time.monotonic() + float(self.p["info_timeout_s"])
             while time.monotonic() < t_wait and (not self.js_t or any(c not in self.info for c in cams)):
                 time.sleep(0.1)
-            # what is missing from the cell first (a camera or the stage not running), then whether the stage
-            # hears its commands (discovery of its subscription can lag its joint_states under load)
+            # what is missing from the cell first (a camera or the stage not running: every part that is
+            # missing, in one message), then whether the stage hears its commands (discovery of its
+            # subscription can lag its joint_states under load)
             missing = [c for c in cams if c not in self.info]
-            if not self.js_t:
-                raise CalibrationError("no /picms/stage/joint_states: is the stage running?")
+            absent = [] if self.js_t else ["no /picms/stage/joint_states: is the stage running?"]
             if missing:
-                raise CalibrationError(f"CameraInfo missing for {missing}: intrinsic calibration K, D required")
+                absent.append(f"CameraInfo missing for {missing}: intrinsic calibration K, D required")
+            if absent:
+                raise CalibrationError("; ".join(absent))
             need = int(self.p["command_subscribers"])
             t_wait = time.monotonic() + float(self.p["info_timeout_s"])
             while time.monotonic() < t_wait and self.cmd.get_subscription_count() < need:
