@@ -166,9 +166,15 @@ def test_node_republishes_latest_valid_at_start_and_failures_never_replace_it(ca
     def status(name):
         st = [s for d in diags for s in d.status if s.name == name]
         return st[-1] if st else None
-    assert ros_node.spin_until(lambda: status("/picms_calibration") and status("/picms_stage_sim"), timeout=10)
+
+    def values(name):
+        return {kv.key: kv.value for kv in status(name).values}
+    # the node's count of stage readings is waited for (under load it can hear the stage seconds after this
+    # test did), not assumed from the first report
+    assert ros_node.spin_until(lambda: status("/picms_calibration") and status("/picms_stage_sim")
+                               and int(values("/picms_calibration")["stage readings"]) > 0, timeout=20), cal.log()
     st = status("/picms_calibration")
-    v = {kv.key: kv.value for kv in st.values}
+    v = values("/picms_calibration")
     assert st.level == b"\x01" and "previous valid calibration stays published" in st.message, st
     assert int(v["stage readings"]) > 0 and v["cameras with CameraInfo"] == "0 of 3", v
     sv = {kv.key: kv.value for kv in status("/picms_stage_sim").values}
