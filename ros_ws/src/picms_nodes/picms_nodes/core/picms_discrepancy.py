@@ -352,7 +352,8 @@ CATALOGUE = (
               "each axis bows perpendicular to its travel, quadratically in the reading: c_ak q_k^2",
               tuple(f"bow_{'xyz'[k]}_along_{'xyz'[a]}" for a, k in _STRAIGHT), ("1/m",) * 6,
               "um at 25 mm from the centre of travel (rms over the 6)", 0.025 ** 2 * 1e6,
-              "a longer travel (the bow grows with its square) or a straightedge reversal",
+              "a longer travel (the bow grows with its square), more frames per station (a longer dwell "
+              "averages the disc noise down), or a straightedge reversal",
               cam=_cam_from_U(_dU_straight), trk=_dX_straight, per_camera=False, plausible_max=50.0),
     PicmsTerm("stage_angular", "stage angular error motions (pitch, yaw, roll)",
               "the carriage rotates by G q as the axes travel; the tracker sees the constellation turn, the "
@@ -360,7 +361,8 @@ CATALOGUE = (
               "Abbe offset's part is linear in q and reads as stage_axis_scale)",
               tuple(f"about_{'xyz'[a]}_per_{'xyz'[k]}" for a in range(3) for k in range(3)), ("rad/m",) * 9,
               "urad per 25 mm of travel (rms over the 9)", 0.025 * 1e6,
-              "a longer travel with the tracker's constellation, or an autocollimator / electronic level",
+              "a longer travel with the tracker's constellation, more frames per station (a longer dwell "
+              "averages the disc noise down), or an autocollimator / electronic level",
               cam=_cam_from_U(_dU_angular), rot=_dW_angular, per_camera=False, plausible_max=1e4),
     # ---- tracker (cell)
     PicmsTerm("tracker_length_scale", "tracker length scale error (or a lead error common to the three axes)",
