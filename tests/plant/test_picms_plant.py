@@ -177,7 +177,7 @@ def test_node_republishes_latest_valid_at_start_and_failures_never_replace_it(ca
     v = values("/picms_calibration")
     assert st.level == b"\x01" and "previous valid calibration stays published" in st.message, st
     assert int(v["stage readings"]) > 0 and v["cameras with CameraInfo"] == "0 of 3", v
-    sv = {kv.key: kv.value for kv in status("/picms_stage_sim").values}
+    sv = values("/picms_stage_sim")
     assert status("/picms_stage_sim").level == b"\x00" and int(sv["stage readings published"]) > 0, sv
     assert cal.stop() == 0
     stage.stop()
